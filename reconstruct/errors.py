@@ -1,0 +1,27 @@
+"""The reconstruction exception tree and warning."""
+
+from __future__ import annotations
+
+
+class ReconstructionError(Exception):
+    """Base of every reconstruction failure."""
+
+
+class InvalidInputError(ReconstructionError, ValueError):
+    """The input cannot be used: unreadable or malformed file, too few points, bad parameters."""
+
+
+class DegenerateCloudError(InvalidInputError):
+    """The cloud has no 2D surface to recover (collinear, or a neighbourhood graph in pieces)."""
+
+
+class FitError(ReconstructionError, RuntimeError):
+    """A numeric step failed on valid input (embedding, training, spline fit)."""
+
+
+class NotFittedError(ReconstructionError, AttributeError):
+    """A step was used before ``fit``."""
+
+
+class ReconstructionWarning(UserWarning):
+    """Input was repaired (points dropped, a piece discarded) and the result may differ from expected."""

@@ -1,0 +1,1 @@
+"""Simulated devices (first-class backends) and synthetic shapes with ground truth."""

@@ -24,4 +24,4 @@ class NotFittedError(ReconstructionError, AttributeError):
 
 
 class ReconstructionWarning(UserWarning):
-    """Input was repaired (points dropped, a piece discarded) and the result may differ from expected."""
+    """Input was repaired (points dropped, a piece discarded); the result may differ."""

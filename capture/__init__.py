@@ -1,0 +1,1 @@
+"""Capture sessions, the command line and the daemon: composes drivers and reconstruct."""

@@ -1,0 +1,66 @@
+"""`scanstation` command line: sub-commands, progress on stderr, one-line errors."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+import warnings
+
+#: sub-command modules, imported lazily so `scanstation --help` stays fast.
+COMMANDS = ("demo", "reconstruct", "remesh", "devices")
+EXPECTED_ERRORS: tuple[type[BaseException], ...] = (OSError, ValueError)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="scanstation",
+        description="Scanner-capture workstation: capture depth + turntable scans, build meshes.",
+    )
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug output")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in COMMANDS:
+        importlib.import_module(f"capture.commands.{name}").add_parser(subparsers)
+    return parser
+
+
+def _setup_output(quiet: bool, verbose: bool) -> None:
+    level = logging.WARNING if quiet else logging.DEBUG if verbose else logging.INFO
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(logging.WARNING)
+    for name in ("capture", "reconstruct", "drivers", "sim"):
+        logging.getLogger(name).setLevel(level)
+
+    def one_line_warning(message, category, filename, lineno, file=None, line=None):
+        if not quiet:
+            print(f"warning: {message}", file=sys.stderr)
+
+    warnings.showwarning = one_line_warning
+
+
+def main(argv: list[str] | None = None) -> int:
+    from drivers.errors import DeviceError
+    from reconstruct.errors import ReconstructionError
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _setup_output(args.quiet, args.verbose)
+    try:
+        return int(args.run(args) or 0)
+    except KeyboardInterrupt:
+        print("scanstation: interrupted", file=sys.stderr)
+        return 130
+    except (ReconstructionError, DeviceError, *EXPECTED_ERRORS) as exc:
+        if args.verbose:
+            raise
+        print(f"scanstation: error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,71 @@
+"""`scanstation reconstruct INPUT -o OUTPUT`: a point cloud file in, a mesh file out."""
+
+from __future__ import annotations
+
+import logging
+
+log = logging.getLogger("capture.cli")
+
+
+def add_reconstruction_options(parser, *, defaults=True) -> None:
+    """Options shared by every command that reconstructs (reconstruct, scan, replay)."""
+    from reconstruct.pipeline import DEFAULT_LAM
+
+    parser.add_argument("--lam", type=float, default=DEFAULT_LAM, help="spline smoothing λ")
+    parser.add_argument("--depth", type=int, default=3, help="boundary path depths (default 3)")
+    parser.add_argument(
+        "--embedding",
+        choices=("auto", "isomap", "mlle", "landmark"),
+        default="auto",
+        help="3D→2D embedding (default: chosen by cloud size)",
+    )
+    parser.add_argument("--neighbors", type=int, default=None, help="K (default: automatic)")
+    parser.add_argument("--max-layers", type=int, default=2, help="MLP hidden layers (max)")
+    parser.add_argument("--max-neurons", type=int, default=20, help="neurons per layer (max)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (same seed, same mesh)")
+
+
+def reconstructor_from_args(args):
+    from reconstruct.pipeline import SurfaceReconstructor
+
+    return SurfaceReconstructor(
+        lam=args.lam,
+        depth=args.depth,
+        embedding=args.embedding,
+        n_neighbors=args.neighbors,
+        max_layers=args.max_layers,
+        max_neurons=args.max_neurons,
+        random_state=args.seed,
+    )
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "reconstruct",
+        help="turn a noisy point cloud (PLY, XYZ/CSV, NPY) into a mesh (PLY, OBJ, STL, GLB)",
+    )
+    parser.add_argument("input", help="point cloud file")
+    parser.add_argument("-o", "--output", required=True, help="mesh file; format by extension")
+    add_reconstruction_options(parser)
+    parser.add_argument("--save", metavar="STATE", help="also save the state for `remesh`")
+    parser.set_defaults(run=run)
+
+
+def run(args) -> int:
+    from reconstruct.io import check_mesh_path, read_points, write_mesh
+
+    check_mesh_path(args.output)  # fail before the long work, not after
+    points = read_points(args.input)
+    log.info("read %d points from %s", len(points), args.input)
+    model = reconstructor_from_args(args).fit(points)
+    write_mesh(model.mesh_, args.output)
+    log.info(
+        "wrote %s (%d vertices, %d faces)",
+        args.output,
+        len(model.mesh_.vertices),
+        len(model.mesh_.faces),
+    )
+    if args.save:
+        model.save(args.save)
+        log.info("saved state to %s (re-mesh with `scanstation remesh`)", args.save)
+    return 0

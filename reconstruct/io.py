@@ -1,0 +1,121 @@
+"""Reading point clouds (PLY, XYZ/CSV text, NPY) and writing meshes (PLY, OBJ, STL, GLB)."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from .errors import InvalidInputError
+
+POINT_FORMATS = (".ply", ".xyz", ".txt", ".csv", ".pts", ".npy")
+MESH_FORMATS = (".ply", ".obj", ".stl", ".glb")
+
+
+def read_points(path: str | os.PathLike) -> np.ndarray:
+    """Read a point cloud file into (n, 3) float64 (x, y, z: the first three columns/properties).
+
+    Raises `InvalidInputError` with a one-line message naming the file and the cause.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in POINT_FORMATS:
+        raise InvalidInputError(
+            f"{path}: unsupported point cloud format {suffix or '(none)'!r} "
+            f"(use one of {', '.join(POINT_FORMATS)})"
+        )
+    if not path.is_file():
+        raise InvalidInputError(f"{path}: no such file")
+    if path.stat().st_size == 0:
+        raise InvalidInputError(f"{path}: file is empty")
+    try:
+        if suffix == ".npy":
+            points = np.load(path, allow_pickle=False)
+        elif suffix == ".ply":
+            points = _read_ply(path)
+        else:
+            points = _read_text(path)
+    except InvalidInputError:
+        raise
+    except Exception as exc:  # every parser failure becomes one line naming the file
+        raise InvalidInputError(f"{path}: cannot read {suffix[1:].upper()} ({exc})") from exc
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise InvalidInputError(f"{path}: expected rows of x, y, z, got shape {points.shape}")
+    if len(points) == 0:
+        raise InvalidInputError(f"{path}: holds no points")
+    return np.ascontiguousarray(points[:, :3], dtype=np.float64)
+
+
+def _read_ply(path: Path) -> np.ndarray:
+    with open(path, "rb") as handle:
+        if handle.read(3) != b"ply":
+            raise InvalidInputError(f"{path}: malformed PLY (missing 'ply' magic)")
+    loaded = trimesh.load(path, force=None, process=False)
+    if isinstance(loaded, trimesh.Scene):
+        geometries = list(loaded.geometry.values())
+        if not geometries:
+            raise InvalidInputError(f"{path}: PLY holds no vertices")
+        vertices = np.vstack([np.asarray(g.vertices) for g in geometries])
+    else:
+        vertices = np.asarray(loaded.vertices)
+    if len(vertices) == 0:
+        raise InvalidInputError(f"{path}: PLY holds no vertices")
+    return vertices
+
+
+def _read_text(path: Path) -> np.ndarray:
+    with open(path, encoding="utf-8", errors="strict") as handle:
+        lines = [line.strip() for line in handle]
+    rows = [line for line in lines if line and not line.startswith(("#", "//"))]
+    if not rows:
+        raise InvalidInputError(f"{path}: holds no points")
+    delimiter = "," if "," in rows[0] or (len(rows) > 1 and "," in rows[1]) else None
+    try:
+        float(rows[0].replace(",", " ").split()[0])
+    except ValueError:
+        rows = rows[1:]  # a header line such as "x,y,z"
+    if not rows:
+        raise InvalidInputError(f"{path}: holds no points")
+    try:
+        return np.loadtxt(rows, delimiter=delimiter, ndmin=2)
+    except ValueError as exc:
+        raise InvalidInputError(f"{path}: malformed text point cloud ({exc})") from exc
+
+
+def check_mesh_path(path: str | os.PathLike) -> Path:
+    """Fail before long work when ``path`` cannot take a mesh: bad extension, missing folder."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in MESH_FORMATS:
+        raise InvalidInputError(
+            f"{path}: unsupported mesh format {suffix or '(none)'!r} "
+            f"(use {', '.join(MESH_FORMATS)})"
+        )
+    directory = path.parent if str(path.parent) else Path(".")
+    if not directory.is_dir():
+        raise InvalidInputError(f"{path}: folder {directory} does not exist")
+    if not os.access(directory, os.W_OK):
+        raise InvalidInputError(f"{path}: folder {directory} is not writable")
+    return path
+
+
+def write_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> Path:
+    """Write ``mesh`` in the format given by the extension, atomically (temp file + rename)."""
+    path = check_mesh_path(path)
+    directory = path.parent if str(path.parent) else Path(".")
+    data = mesh.export(file_type=path.suffix.lower()[1:])
+    if isinstance(data, str):
+        data = data.encode("utf-8")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=directory)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path

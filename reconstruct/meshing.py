@@ -1,0 +1,236 @@
+"""Meshing in the 2D parameter domain: a regular grid re-sampled inside the boundary polygon, the
+boundary's own points as vertices, Delaunay, triangles whose centroid is outside removed.
+
+The grid's full cells are split into two triangles each directly (a regular grid's Delaunay
+triangulation, up to the arbitrary diagonal of co-circular points); only the band between the
+grid and the boundary goes through scipy's Delaunay. That keeps re-meshing fast (a 50k-vertex
+mesh in tens of milliseconds instead of seconds). If the band does not stitch cleanly onto the
+grid the whole set is triangulated by Delaunay instead, so the result is always the paper's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import shapely
+from scipy.spatial import Delaunay, cKDTree
+
+from .errors import FitError
+
+
+def default_spacing(polygon: np.ndarray, n_points: int) -> float:
+    """Grid spacing that gives about as many mesh vertices as the cloud has points.
+
+    polygon : (p, 2) closed boundary polygon. n_points : cloud size.
+    """
+    area = abs(_shoelace(polygon))
+    return float(np.sqrt(area / max(int(n_points), 1)))
+
+
+def mesh_inside(
+    polygon: np.ndarray, boundary_points: np.ndarray, spacing: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Triangulate the region inside ``polygon``.
+
+    polygon : (p, 2) dense closed polygon of the boundary spline.
+    boundary_points : (b, 2) points on the spline used as boundary vertices.
+    spacing : grid spacing, in the units of the polygon.
+    Returns vertices (v, 2) float64 and faces (f, 3) int64, counter-clockwise.
+    """
+    if not np.isfinite(spacing) or spacing <= 0:
+        raise FitError(f"grid spacing must be positive, got {spacing}")
+    polygon = np.asarray(polygon, dtype=np.float64)
+    if not np.array_equal(polygon[0], polygon[-1]):
+        polygon = np.vstack([polygon, polygon[:1]])
+    region = shapely.Polygon(polygon)
+    shapely.prepare(region)
+    # index: (ny+1, nx+1) vertex id of each grid node, -1 when unused; full: (ny, nx) cells.
+    origin, index, grid_xy, full = _grid_nodes(polygon, spacing)
+
+    n_boundary = len(boundary_points)
+    vertices = np.vstack([boundary_points, grid_xy])
+    grid_faces = _full_cell_faces(full, index) + n_boundary
+
+    # Band: boundary points + every used node that touches a non-full cell, plus one ring more so
+    # that Delaunay sees the grid beyond the band's edge.
+    touches_band = _nodes_touching(~full & _cells_with_any_node(index), dilate=1)
+    band_nodes = index[touches_band & (index >= 0)]
+    band_ids = np.concatenate([np.arange(n_boundary), band_nodes + n_boundary])
+    band_faces = _delaunay_faces(vertices, band_ids)
+    centroids = vertices[band_faces].mean(axis=1)
+    keep = shapely.contains_xy(region, centroids[:, 0], centroids[:, 1])
+    keep &= ~_in_full_cell(centroids, origin, spacing, full)
+    band_faces = band_faces[keep]
+    faces = np.vstack([grid_faces, band_faces])
+
+    border = _full_region_border(full, index) + n_boundary
+    if not _stitched(band_faces, border, n_boundary, len(vertices)):
+        all_ids = np.arange(len(vertices))
+        faces = _delaunay_faces(vertices, all_ids)
+        centroids = vertices[faces].mean(axis=1)
+        faces = faces[shapely.contains_xy(region, centroids[:, 0], centroids[:, 1])]
+    if len(faces) == 0:
+        raise FitError("no triangle lies inside the boundary spline")
+    return _drop_unused(vertices, faces)
+
+
+def _grid_nodes(polygon, spacing):
+    lo = polygon.min(axis=0)
+    hi = polygon.max(axis=0)
+    nx = int(np.ceil((hi[0] - lo[0]) / spacing)) + 1
+    ny = int(np.ceil((hi[1] - lo[1]) / spacing)) + 1
+    inside = _rasterize(polygon, lo, spacing, (ny + 1, nx + 1))
+    # Nodes closer than half a spacing to the boundary would make slivers with the boundary points;
+    # only nodes in cells the boundary passes through (grown by one) can be that close.
+    ring = _densify(polygon, spacing / 4)
+    cells = np.floor((ring - lo) / spacing).astype(np.int64)
+    candidate = np.zeros_like(inside)
+    for dj in (-1, 0, 1, 2):
+        for di in (-1, 0, 1, 2):
+            j = np.clip(cells[:, 1] + dj, 0, ny)
+            i = np.clip(cells[:, 0] + di, 0, nx)
+            candidate[j, i] = True
+    candidate &= inside
+    near = np.zeros_like(inside)
+    if candidate.any():
+        cj, ci = np.nonzero(candidate)
+        xy = lo + spacing * np.column_stack([ci, cj])
+        distance, _ = cKDTree(ring).query(xy)
+        near[cj, ci] = distance < 0.5 * spacing
+    used = inside & ~near
+    index = np.full(used.shape, -1, dtype=np.int64)
+    index[used] = np.arange(int(used.sum()))
+    full = used[:-1, :-1] & used[1:, :-1] & used[:-1, 1:] & used[1:, 1:]
+    uj, ui = np.nonzero(used)
+    xy = lo + spacing * np.column_stack([ui, uj]).astype(np.float64)
+    return lo, index, xy, full
+
+
+def _rasterize(polygon, origin, spacing, shape):
+    """(rows, cols) bool: which grid nodes lie inside the closed polygon (even-odd scanlines)."""
+    rows, cols = shape
+    p0, p1 = polygon[:-1], polygon[1:]
+    ys = origin[1] + spacing * np.arange(rows)
+    lo_y = np.minimum(p0[:, 1], p1[:, 1])
+    hi_y = np.maximum(p0[:, 1], p1[:, 1])
+    # Rows each edge crosses (half-open in y so a vertex on a scanline counts once).
+    first = np.ceil((lo_y - origin[1]) / spacing).astype(np.int64)
+    last = np.ceil((hi_y - origin[1]) / spacing).astype(np.int64) - 1
+    counts = np.clip(last - first + 1, 0, None)
+    edge = np.repeat(np.arange(len(p0)), counts)
+    row = np.repeat(first, counts) + (
+        np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    )
+    ok = (row >= 0) & (row < rows)
+    edge, row = edge[ok], row[ok]
+    a, b = p0[edge], p1[edge]
+    t = (ys[row] - a[:, 1]) / (b[:, 1] - a[:, 1])
+    x = a[:, 0] + t * (b[:, 0] - a[:, 0])
+    col = np.clip(np.ceil((x - origin[0]) / spacing).astype(np.int64), 0, cols)
+    toggles = np.zeros((rows, cols + 1), dtype=np.int64)
+    np.add.at(toggles, (row, col), 1)
+    return (np.cumsum(toggles, axis=1)[:, :cols] % 2) == 1
+
+
+def _full_cell_faces(full, index):
+    j, i = np.nonzero(full)
+    a, b = index[j, i], index[j, i + 1]
+    c, d = index[j + 1, i + 1], index[j + 1, i]
+    return np.vstack([np.column_stack([a, b, c]), np.column_stack([a, c, d])]).astype(np.int64)
+
+
+def _cells_with_any_node(index):
+    used = index >= 0
+    return used[:-1, :-1] | used[1:, :-1] | used[:-1, 1:] | used[1:, 1:]
+
+
+def _nodes_touching(cells, dilate=0):
+    """(ny+1, nx+1) mask of grid nodes that are a corner of a marked cell, grown by ``dilate``."""
+    nodes = np.zeros((cells.shape[0] + 1, cells.shape[1] + 1), dtype=bool)
+    nodes[:-1, :-1] |= cells
+    nodes[1:, :-1] |= cells
+    nodes[:-1, 1:] |= cells
+    nodes[1:, 1:] |= cells
+    for _ in range(dilate):
+        grown = nodes.copy()
+        grown[1:, :] |= nodes[:-1, :]
+        grown[:-1, :] |= nodes[1:, :]
+        grown[:, 1:] |= nodes[:, :-1]
+        grown[:, :-1] |= nodes[:, 1:]
+        nodes = grown
+    return nodes
+
+
+def _in_full_cell(points, origin, spacing, full):
+    cell = np.floor((points - origin) / spacing).astype(np.int64)
+    i, j = cell[:, 0], cell[:, 1]
+    valid = (i >= 0) & (j >= 0) & (i < full.shape[1]) & (j < full.shape[0])
+    result = np.zeros(len(points), dtype=bool)
+    result[valid] = full[j[valid], i[valid]]
+    return result
+
+
+def _delaunay_faces(vertices, ids):
+    if len(ids) < 3:
+        return np.empty((0, 3), dtype=np.int64)
+    simplices = Delaunay(vertices[ids]).simplices
+    faces = ids[simplices]
+    return _counter_clockwise(vertices, faces)
+
+
+def _counter_clockwise(vertices, faces):
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    cross = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    faces = faces.copy()
+    flip = cross < 0
+    faces[flip] = faces[flip][:, [0, 2, 1]]
+    return faces
+
+
+def _full_region_border(full, index):
+    """(e, 2) grid-node ids of the edges on the border of the union of full cells."""
+    padded = np.pad(full, 1)
+    horizontal = padded[:-1, 1:-1] != padded[1:, 1:-1]  # (ny+1, nx): node (j,i)-(j,i+1)
+    vertical = padded[1:-1, :-1] != padded[1:-1, 1:]  # (ny, nx+1): node (j,i)-(j+1,i)
+    hj, hi = np.nonzero(horizontal)
+    vj, vi = np.nonzero(vertical)
+    return np.vstack(
+        [
+            np.column_stack([index[hj, hi], index[hj, hi + 1]]),
+            np.column_stack([index[vj, vi], index[vj + 1, vi]]),
+        ]
+    )
+
+
+def _stitched(band_faces, border_edges, n_boundary, n_vertices):
+    """True when the band triangles share the full-cell region's border edges instead of
+    overlapping it: no edge has more than two faces, and no open edge runs between grid nodes."""
+    edges = np.vstack([band_faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), border_edges])
+    edges = np.sort(edges, axis=1)
+    key = edges[:, 0] * n_vertices + edges[:, 1]
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    if (counts > 2).any():
+        return False
+    open_edges = edges[counts[inverse] == 1]
+    return bool((open_edges < n_boundary).any(axis=1).all())
+
+
+def _drop_unused(vertices, faces):
+    used = np.unique(faces)
+    remap = np.full(len(vertices), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    return vertices[used], remap[faces]
+
+
+def _densify(polygon, step):
+    seg = np.diff(polygon, axis=0)
+    length = np.hypot(seg[:, 0], seg[:, 1])
+    counts = np.maximum(np.ceil(length / step).astype(int), 1)
+    first = np.repeat(np.cumsum(counts) - counts, counts)
+    t = (np.arange(counts.sum()) - first) / np.repeat(counts, counts)
+    start = np.repeat(polygon[:-1], counts, axis=0)
+    return start + np.repeat(seg, counts, axis=0) * t[:, None]
+
+
+def _shoelace(polygon):
+    x, y = polygon[:, 0], polygon[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))

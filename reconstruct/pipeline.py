@@ -1,0 +1,239 @@
+"""The whole method in one estimator: embed → adaptive MLP → boundary → spline → mesh → 3D.
+
+A fitted reconstruction keeps the embedded points and the ONNX surface map, so `remesh` with a
+new λ, boundary depth or grid spacing runs in milliseconds without retraining, and `save` /
+`load` carry that state to another process.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from sklearn.base import BaseEstimator
+
+from .boundary import MultiDepthBoundary, PCABoundary
+from .embedding import SurfaceEmbedding
+from .errors import InvalidInputError, NotFittedError
+from .meshing import default_spacing, mesh_inside
+from .mlp import AdaptiveMLP
+from .spline import BoundarySpline
+from .surface_map import OnnxSurfaceMap
+from .validation import check_points
+
+log = logging.getLogger(__name__)
+
+#: Default smoothing λ (allowed mean squared spline residual as a fraction of the boundary
+#: interpolants' variance), chosen from bench/quality.py.
+DEFAULT_LAM = 0.002
+STATE_FORMAT = "scanstation-reconstruction/1"
+_MESH_PARAMS = ("lam", "depth", "n_corners", "boundary", "grid_spacing")
+
+
+class SurfaceReconstructor(BaseEstimator):
+    """Reconstruct a triangle mesh from a noisy point cloud (White & Bai; Yumer & Kara).
+
+    Parameters
+    ----------
+    lam : spline smoothing λ; larger gives a smoother boundary.
+    depth : number of boundary path depths sampled (the paper's multi-depth method).
+    n_corners : corners of the boundary paths (>= 8).
+    boundary : "multidepth" (the paper) or "pca" (the Yumer–Kara baseline).
+    embedding : "auto", "isomap", "mlle" or "landmark".
+    n_neighbors : K of the neighbourhood graph; None chooses it automatically.
+    max_layers, max_neurons, activation, retrain : the adaptive MLP search.
+    grid_spacing : spacing of the interior grid in embedding units; None derives it from density.
+    random_state : seed; the same seed gives the same mesh.
+
+    Fitted attributes: ``embedding_`` (m, 2), ``points_`` (m, 3) the points it was fitted to,
+    ``surface_map_`` (OnnxSurfaceMap), ``hidden_layers_``, ``mesh_`` (trimesh.Trimesh),
+    ``boundary_points_`` (k, 2), ``spline_`` (BoundarySpline), ``vertices_2d_`` (v, 2).
+    """
+
+    def __init__(
+        self,
+        lam: float = DEFAULT_LAM,
+        depth: int = 3,
+        n_corners: int = 8,
+        boundary: str = "multidepth",
+        embedding: str = "auto",
+        n_neighbors: int | None = None,
+        max_layers: int = 2,
+        max_neurons: int = 20,
+        activation: str = "tanh",
+        retrain: bool = False,
+        grid_spacing: float | None = None,
+        random_state: int | None = 0,
+    ):
+        self.lam = lam
+        self.depth = depth
+        self.n_corners = n_corners
+        self.boundary = boundary
+        self.embedding = embedding
+        self.n_neighbors = n_neighbors
+        self.max_layers = max_layers
+        self.max_neurons = max_neurons
+        self.activation = activation
+        self.retrain = retrain
+        self.grid_spacing = grid_spacing
+        self.random_state = random_state
+
+    def fit(self, points) -> SurfaceReconstructor:
+        """points : (n, 3) float, any unit. Returns self with ``mesh_`` set."""
+        self._check_mesh_params()
+        points = check_points(points)
+        started = time.perf_counter()
+        embedding = SurfaceEmbedding(
+            method=self.embedding, n_neighbors=self.n_neighbors, random_state=self.random_state
+        ).fit(points)
+        self.embedding_ = embedding.embedding_
+        self.points_ = points[embedding.support_]
+        self.embedding_method_ = embedding.method_
+        self.n_neighbors_ = embedding.n_neighbors_
+        mlp = AdaptiveMLP(
+            max_layers=self.max_layers,
+            max_neurons=self.max_neurons,
+            activation=self.activation,
+            retrain=self.retrain,
+            random_state=self.random_state,
+        ).fit(self.embedding_, self.points_)
+        self.mlp_ = mlp
+        self.surface_map_ = mlp.surface_map_
+        self.hidden_layers_ = tuple(mlp.hidden_layers_)
+        self._boundary_cache = {}
+        self.remesh()
+        log.info(
+            "reconstructed %d points in %.1f s: %s, K=%d, layers %s, %d vertices, %d faces",
+            len(points),
+            time.perf_counter() - started,
+            self.embedding_method_,
+            self.n_neighbors_,
+            self.hidden_layers_,
+            len(self.mesh_.vertices),
+            len(self.mesh_.faces),
+        )
+        return self
+
+    def remesh(self, **params) -> trimesh.Trimesh:
+        """Re-mesh with new ``lam``, ``depth``, ``n_corners``, ``boundary`` or ``grid_spacing``
+        through the stored ONNX map (no retraining). Returns and stores ``mesh_``."""
+        unknown = set(params) - set(_MESH_PARAMS)
+        if unknown:
+            raise InvalidInputError(f"cannot re-mesh with {sorted(unknown)}: not a mesh parameter")
+        if not hasattr(self, "surface_map_"):
+            raise NotFittedError("fit() the reconstructor (or load() a saved one) first")
+        self.set_params(**{k: v for k, v in params.items() if v is not None})
+        self._check_mesh_params()
+        started = time.perf_counter()
+        interpolants = self._boundary_points()
+        spline = BoundarySpline(lam=self.lam).fit(interpolants)
+        spacing = self.grid_spacing or default_spacing(spline.polygon_, len(self.embedding_))
+        boundary_vertices = spline.sample_by_spacing(spacing)
+        vertices_2d, faces = mesh_inside(spline.polygon_, boundary_vertices, spacing)
+        vertices_3d = self.surface_map_(vertices_2d)
+        self.boundary_points_ = interpolants
+        self.spline_ = spline
+        self.vertices_2d_ = vertices_2d
+        self.mesh_ = trimesh.Trimesh(vertices_3d, faces, process=False)
+        log.info(
+            "meshed: λ=%g, depth %d, %d interpolants, %d vertices, %d faces (%.0f ms)",
+            self.lam,
+            self.depth,
+            len(interpolants),
+            len(vertices_2d),
+            len(faces),
+            1000 * (time.perf_counter() - started),
+        )
+        return self.mesh_
+
+    def _boundary_points(self) -> np.ndarray:
+        cache = self.__dict__.setdefault("_boundary_cache", {})
+        key = (self.boundary, self.depth, self.n_corners)
+        if key not in cache:
+            if self.boundary == "pca":
+                sampler = PCABoundary()
+            else:
+                sampler = MultiDepthBoundary(depth=self.depth, n_corners=self.n_corners)
+            cache[key] = sampler.fit(self.embedding_).points_
+        return cache[key]
+
+    def _check_mesh_params(self) -> None:
+        if not (np.isfinite(self.lam) and self.lam >= 0):
+            raise InvalidInputError(f"lam must be a finite number >= 0, got {self.lam}")
+        if int(self.depth) != self.depth or self.depth < 1:
+            raise InvalidInputError(f"depth must be a whole number >= 1, got {self.depth}")
+        if self.n_corners < 8:
+            raise InvalidInputError(
+                f"n_corners must be >= 8 (the paper's method), got {self.n_corners}"
+            )
+        if self.boundary not in ("multidepth", "pca"):
+            raise InvalidInputError(
+                f"boundary must be 'multidepth' or 'pca', got {self.boundary!r}"
+            )
+        if self.grid_spacing is not None and not self.grid_spacing > 0:
+            raise InvalidInputError(f"grid_spacing must be > 0, got {self.grid_spacing}")
+
+    # -- persistence ---------------------------------------------------------------------------
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the fitted state (embedded points, ONNX model, parameters) atomically."""
+        if not hasattr(self, "surface_map_"):
+            raise NotFittedError("nothing to save: fit() the reconstructor first")
+        path = Path(path)
+        meta = {
+            "format": STATE_FORMAT,
+            "params": self.get_params(),
+            "embedding_method": self.embedding_method_,
+            "n_neighbors": int(self.n_neighbors_),
+            "hidden_layers": list(self.hidden_layers_),
+        }
+        buffer = io.BytesIO()
+        np.savez_compressed(
+            buffer,
+            meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
+            embedding=self.embedding_,
+            points=self.points_,
+            onnx=np.frombuffer(self.surface_map_.to_bytes(), dtype=np.uint8),
+        )
+        directory = path.parent if str(path.parent) else Path(".")
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=directory)
+        try:
+            with os.fdopen(fd, "wb") as handle:
+                handle.write(buffer.getvalue())
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> SurfaceReconstructor:
+        """Read a state written by `save`; the result can `remesh()` at once."""
+        path = Path(path)
+        if not path.is_file():
+            raise InvalidInputError(f"{path}: no such reconstruction state file")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                meta = json.loads(bytes(data["meta"]).decode())
+                embedding, points, onnx = data["embedding"], data["points"], bytes(data["onnx"])
+        except Exception as exc:
+            raise InvalidInputError(
+                f"{path}: not a ScanStation reconstruction state ({exc})"
+            ) from exc
+        if meta.get("format") != STATE_FORMAT:
+            raise InvalidInputError(f"{path}: unsupported state format {meta.get('format')!r}")
+        self = cls(**meta["params"])
+        self.embedding_ = embedding
+        self.points_ = points
+        self.embedding_method_ = meta["embedding_method"]
+        self.n_neighbors_ = meta["n_neighbors"]
+        self.hidden_layers_ = tuple(meta["hidden_layers"])
+        self.surface_map_ = OnnxSurfaceMap.from_bytes(onnx)
+        self._boundary_cache = {}
+        return self

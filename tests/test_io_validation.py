@@ -1,0 +1,105 @@
+import warnings
+
+import numpy as np
+import pytest
+import trimesh
+
+from reconstruct.errors import DegenerateCloudError, InvalidInputError, ReconstructionWarning
+from reconstruct.io import check_mesh_path, read_points, write_mesh
+from reconstruct.validation import MIN_POINTS, check_points
+
+RNG = np.random.default_rng(0)
+CLOUD = RNG.normal(size=(50, 3))
+
+
+@pytest.mark.parametrize("suffix", [".xyz", ".csv", ".npy", ".ply", ".txt"])
+def test_read_points_round_trips_every_format(tmp_path, suffix):
+    path = tmp_path / f"cloud{suffix}"
+    if suffix == ".npy":
+        np.save(path, CLOUD)
+    elif suffix == ".ply":
+        trimesh.PointCloud(CLOUD).export(path)
+    elif suffix == ".csv":
+        np.savetxt(path, CLOUD, delimiter=",", header="x,y,z", comments="")
+    else:
+        np.savetxt(path, np.hstack([CLOUD, np.ones((50, 3))]))  # extra columns: normals, colour
+    np.testing.assert_allclose(read_points(path), CLOUD, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "message"),
+    [
+        ("empty.ply", b"", "file is empty"),
+        ("garbage.ply", b"not a ply at all\n1 2 3\n", "malformed PLY"),
+        ("truncated.ply", b"ply\nformat ascii 1.0\nelement vertex 10\nproperty float x\n", "cannot read PLY"),
+        ("words.xyz", b"a b c\nd e f\n", "malformed text"),
+        ("two_columns.csv", b"1,2\n3,4\n", "expected rows of x, y, z"),
+        ("cloud.las", b"xx", "unsupported point cloud format"),
+    ],
+)
+def test_bad_files_give_one_line_errors(tmp_path, name, content, message):
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(InvalidInputError, match=message) as info:
+        read_points(path)
+    assert "\n" not in str(info.value)
+    assert name in str(info.value)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(InvalidInputError, match="no such file"):
+        read_points(tmp_path / "nope.ply")
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".stl", ".glb"])
+def test_write_mesh_by_extension(tmp_path, suffix):
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    path = write_mesh(mesh, tmp_path / f"m{suffix}")
+    loaded = trimesh.load(path, force="mesh")
+    assert len(loaded.faces) == len(mesh.faces)
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "no temp file left"
+
+
+def test_mesh_path_checked_before_work(tmp_path):
+    with pytest.raises(InvalidInputError, match="unsupported mesh format"):
+        check_mesh_path(tmp_path / "m.xyz")
+    with pytest.raises(InvalidInputError, match="does not exist"):
+        check_mesh_path(tmp_path / "missing" / "m.ply")
+
+
+def test_check_points_drops_nonfinite_with_warning():
+    cloud = CLOUD.copy()
+    cloud[3, 1] = np.nan
+    cloud[7, 2] = np.inf
+    with pytest.warns(ReconstructionWarning, match="dropped 2 of 50 points with NaN"):
+        clean = check_points(cloud)
+    assert clean.shape == (48, 3) and np.isfinite(clean).all()
+
+
+def test_check_points_merges_duplicates_with_warning():
+    cloud = np.vstack([CLOUD, CLOUD[:5]])
+    with pytest.warns(ReconstructionWarning, match="merged 5 duplicate points"):
+        clean = check_points(cloud)
+    np.testing.assert_array_equal(clean, CLOUD)
+
+
+def test_clean_cloud_passes_silently():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_array_equal(check_points(CLOUD), CLOUD)
+
+
+@pytest.mark.parametrize(
+    ("cloud", "error", "message"),
+    [
+        (np.empty((0, 3)), InvalidInputError, "empty"),
+        (np.zeros((10, 2)), InvalidInputError, r"shape \(n, 3\)"),
+        (np.full((30, 3), np.nan), InvalidInputError, "all 30 points"),
+        (CLOUD[: MIN_POINTS - 1], InvalidInputError, f"needs at least {MIN_POINTS}"),
+        (np.outer(np.arange(40.0), [1, 2, 3]), DegenerateCloudError, "collinear"),
+        ([["a", "b", "c"]], InvalidInputError, "not numeric"),
+    ],
+)
+def test_check_points_rejects(cloud, error, message):
+    with pytest.raises(error, match=message):
+        check_points(cloud)

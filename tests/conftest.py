@@ -32,7 +32,9 @@ def no_leaked_threads():
 
     t0 = time.monotonic()
     while time.monotonic() - t0 < deadline:
-        leaked = [t for t in threading.enumerate() if t not in before and t.is_alive() and not t.daemon]
+        leaked = [
+            t for t in threading.enumerate() if t not in before and t.is_alive() and not t.daemon
+        ]
         if not leaked:
             return
         time.sleep(0.02)

@@ -31,7 +31,11 @@ def test_read_points_round_trips_every_format(tmp_path, suffix):
     [
         ("empty.ply", b"", "file is empty"),
         ("garbage.ply", b"not a ply at all\n1 2 3\n", "malformed PLY"),
-        ("truncated.ply", b"ply\nformat ascii 1.0\nelement vertex 10\nproperty float x\n", "cannot read PLY"),
+        (
+            "truncated.ply",
+            b"ply\nformat ascii 1.0\nelement vertex 10\nproperty float x\n",
+            "cannot read PLY",
+        ),
         ("words.xyz", b"a b c\nd e f\n", "malformed text"),
         ("two_columns.csv", b"1,2\n3,4\n", "expected rows of x, y, z"),
         ("cloud.las", b"xx", "unsupported point cloud format"),

@@ -16,7 +16,9 @@ def _loop(radius_fn, n=1200):
 
 def _areas(vertices, faces):
     a, b, c = (vertices[faces[:, k]] for k in range(3))
-    return 0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
+    return 0.5 * (
+        (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    )
 
 
 def _edge_counts(faces):
@@ -56,8 +58,12 @@ def test_grid_is_regular_inside():
     polygon = np.array([[0, 0], [10, 0], [10, 10], [0, 10], [0, 0]], dtype=float)
     t = np.linspace(0, 1, 41)[:-1]
     boundary = np.vstack(
-        [np.column_stack([10 * t, 0 * t]), np.column_stack([10 + 0 * t, 10 * t]),
-         np.column_stack([10 - 10 * t, 10 + 0 * t]), np.column_stack([0 * t, 10 - 10 * t])]
+        [
+            np.column_stack([10 * t, 0 * t]),
+            np.column_stack([10 + 0 * t, 10 * t]),
+            np.column_stack([10 - 10 * t, 10 + 0 * t]),
+            np.column_stack([0 * t, 10 - 10 * t]),
+        ]
     )
     vertices, faces = mesh_inside(polygon, boundary, spacing=0.5)
     interior = vertices[(vertices > 0.6).all(axis=1) & (vertices < 9.4).all(axis=1)]

@@ -1,0 +1,82 @@
+"""The `scanstation` command line: outputs, one-line errors, non-zero exits, no tracebacks."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+from capture.cli import main
+
+
+def _plane(path, n=500, seed=0):
+    rng = np.random.default_rng(seed)
+    points = np.column_stack([rng.uniform(-1, 1, (n, 2)), rng.normal(0, 0.01, n)])
+    np.savetxt(path, points)
+    return path
+
+
+def test_reconstruct_then_remesh(tmp_path, capsys):
+    cloud = _plane(tmp_path / "plane.xyz")
+    out = tmp_path / "mesh.obj"
+    state = tmp_path / "state.npz"
+    args = ["--quiet", "reconstruct", str(cloud), "-o", str(out), "--max-layers", "1"]
+    assert main([*args, "--max-neurons", "6", "--save", str(state)]) == 0
+    mesh = trimesh.load(out, force="mesh")
+    assert len(mesh.faces) > 100
+    again = tmp_path / "again.stl"
+    assert main(["--quiet", "remesh", str(state), "-o", str(again), "--lam", "0.01"]) == 0
+    assert len(trimesh.load(again, force="mesh").faces) > 100
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (b"", "file is empty"),
+        (b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n", "PLY"),
+        (b"nan nan nan\n" * 30, "NaN or infinite"),
+        (b"1 2 3\n2 4 6\n3 6 9\n" * 10, None),
+    ],
+)
+def test_bad_input_is_one_line_and_nonzero(tmp_path, content, message):
+    suffix = ".ply" if content.startswith(b"ply") or content == b"" else ".xyz"
+    path = tmp_path / f"bad{suffix}"
+    path.write_bytes(content)
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "capture.cli",
+            "reconstruct",
+            str(path),
+            "-o",
+            str(tmp_path / "m.ply"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode != 0
+    error_lines = [
+        line for line in result.stderr.splitlines() if line.startswith("scanstation: error")
+    ]
+    assert len(error_lines) == 1, result.stderr
+    assert "Traceback" not in result.stderr
+    if message:
+        assert message in error_lines[0]
+    assert not (tmp_path / "m.ply").exists()
+
+
+def test_unwritable_output_fails_before_work(tmp_path, capsys):
+    cloud = _plane(tmp_path / "plane.xyz")
+    code = main(["reconstruct", str(cloud), "-o", str(tmp_path / "nowhere" / "m.ply")])
+    assert code == 1
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_devices_lists_backends(capsys):
+    assert main(["devices"]) == 0
+    out = capsys.readouterr().out
+    for scheme in ("grbl://", "sim://", "oak://"):
+        assert scheme in out

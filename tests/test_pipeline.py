@@ -1,0 +1,118 @@
+"""End-to-end known answers of the whole method (reconstruct.pipeline.SurfaceReconstructor)."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from reconstruct.errors import DegenerateCloudError, InvalidInputError, NotFittedError
+from reconstruct.pipeline import SurfaceReconstructor
+
+FAST = {"max_layers": 1, "max_neurons": 8}
+
+
+def noisy_plane(n=900, sigma=0.01, seed=0):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-1, 1, size=(n, 2))
+    z = rng.normal(0, sigma, size=n)
+    return np.column_stack([xy, z])
+
+
+def noisy_sphere_cap(n=1200, radius=2.0, sigma=0.01, seed=0):
+    rng = np.random.default_rng(seed)
+    polar = np.arccos(rng.uniform(np.cos(np.pi / 3), 1, size=n))  # area-uniform cap of 60°
+    azimuth = rng.uniform(0, 2 * np.pi, size=n)
+    r = radius + rng.normal(0, sigma, size=n)
+    return np.column_stack(
+        [
+            r * np.sin(polar) * np.cos(azimuth),
+            r * np.sin(polar) * np.sin(azimuth),
+            r * np.cos(polar),
+        ]
+    )
+
+
+@pytest.fixture(scope="module")
+def plane_model():
+    return SurfaceReconstructor(random_state=0, **FAST).fit(noisy_plane())
+
+
+def test_noisy_plane_gives_a_flat_mesh(plane_model):
+    mesh = plane_model.mesh_
+    assert isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) > 500
+    # The noise is σ = 0.01 in z; the mesh must be flatter than the noise.
+    assert np.abs(mesh.vertices[:, 2]).max() < 0.02
+    assert np.sqrt(np.mean(mesh.vertices[:, 2] ** 2)) < 0.004
+    # And it spans the square the points came from.
+    extent = mesh.vertices[:, :2].max(axis=0) - mesh.vertices[:, :2].min(axis=0)
+    assert (extent > 1.8).all() and (extent < 2.1).all()
+    assert mesh.is_winding_consistent
+
+
+def test_sphere_cap_keeps_its_radius():
+    model = SurfaceReconstructor(random_state=0, **FAST).fit(noisy_sphere_cap())
+    radii = np.linalg.norm(model.mesh_.vertices, axis=1)
+    assert np.median(radii) == pytest.approx(2.0, abs=0.01)
+    assert np.percentile(np.abs(radii - 2.0), 95) < 0.03
+
+
+def test_same_seed_same_mesh():
+    points = noisy_plane(400, seed=3)
+    a = SurfaceReconstructor(random_state=7, **FAST).fit(points).mesh_
+    b = SurfaceReconstructor(random_state=7, **FAST).fit(points).mesh_
+    np.testing.assert_array_equal(a.faces, b.faces)
+    np.testing.assert_array_equal(a.vertices, b.vertices)
+
+
+def test_larger_lambda_gives_a_smoother_boundary(plane_model):
+    def boundary_roughness(model):
+        polygon = model.spline_.polygon_
+        seg = np.diff(polygon, axis=0)
+        heading = np.unwrap(np.arctan2(seg[:, 1], seg[:, 0]))
+        return np.abs(np.diff(heading)).sum()  # total absolute turning
+
+    plane_model.remesh(lam=1e-4)
+    rough = boundary_roughness(plane_model)
+    plane_model.remesh(lam=0.05)
+    smooth = boundary_roughness(plane_model)
+    assert smooth < rough
+    assert smooth >= 2 * np.pi - 1e-6  # a closed simple loop turns at least once
+
+
+def test_remesh_is_consistent_and_cached(plane_model):
+    first = plane_model.remesh(lam=0.002, depth=3)
+    again = plane_model.remesh(lam=0.002, depth=3)
+    np.testing.assert_array_equal(first.faces, again.faces)
+    deeper = plane_model.remesh(depth=1)
+    assert len(deeper.faces) > 0
+
+
+def test_save_load_remesh_round_trip(plane_model, tmp_path):
+    path = plane_model.save(tmp_path / "state.npz")
+    loaded = SurfaceReconstructor.load(path)
+    plane_model.remesh(lam=0.003, depth=2)
+    mesh = loaded.remesh(lam=0.003, depth=2)
+    np.testing.assert_allclose(mesh.vertices, plane_model.mesh_.vertices, atol=1e-9)
+    np.testing.assert_array_equal(mesh.faces, plane_model.mesh_.faces)
+
+
+def test_bad_state_files(tmp_path):
+    bad = tmp_path / "state.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(InvalidInputError, match="not a ScanStation reconstruction state"):
+        SurfaceReconstructor.load(bad)
+    with pytest.raises(InvalidInputError, match="no such"):
+        SurfaceReconstructor.load(tmp_path / "missing.npz")
+
+
+def test_unfitted_and_bad_parameters(plane_model):
+    with pytest.raises(NotFittedError):
+        SurfaceReconstructor().remesh()
+    with pytest.raises(InvalidInputError, match="lam"):
+        plane_model.remesh(lam=-1)
+    with pytest.raises(InvalidInputError, match="not a mesh parameter"):
+        plane_model.remesh(max_layers=3)
+
+
+def test_collinear_cloud_is_rejected():
+    with pytest.raises(DegenerateCloudError, match="collinear"):
+        SurfaceReconstructor().fit(np.outer(np.linspace(0, 1, 100), [1, 2, 3]))

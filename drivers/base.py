@@ -71,7 +71,7 @@ class Turntable(Device):
 
     @abc.abstractmethod
     def home(self) -> None:
-        """Make the current position the zero angle (or run the homing cycle if the device has one)."""
+        """Make the current position the zero angle (or run the device's homing cycle)."""
 
     @abc.abstractmethod
     def move_to(self, degrees: float) -> None:
@@ -120,7 +120,7 @@ class DepthCamera(Device):
     @property
     @abc.abstractmethod
     def intrinsics(self) -> np.ndarray:
-        """(3, 3) float camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels, for `depth`."""
+        """(3, 3) float camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels."""
 
     @abc.abstractmethod
     def grab(self, timeout: float | None = None) -> Frame:

@@ -1,4 +1,4 @@
-"""The device exception tree. Each error is also the matching builtin, so callers may catch either."""
+"""The device exception tree. Each error is also the matching builtin: callers may catch either."""
 
 from __future__ import annotations
 

@@ -8,7 +8,7 @@ import urllib.parse
 from .base import DepthCamera, Device, Turntable
 from .errors import DriverUnavailable, InvalidDeviceURL
 
-#: kind -> scheme -> (module, class). `sim` backends live in the `sim` package (first-class backends).
+#: kind -> scheme -> (module, class). `sim` backends live in the `sim` package (first-class).
 BACKENDS: dict[str, dict[str, tuple[str, str]]] = {
     "turntable": {
         "grbl": ("drivers.grbl", "GrblTurntable"),

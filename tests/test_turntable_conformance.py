@@ -1,0 +1,123 @@
+"""What every `Turntable` backend must do (like scikit-learn's check_estimator).
+
+Runs on the simulated backends always; on a real turntable when SCANSTATION_TURNTABLE_URL is set
+(e.g. ``grbl:///dev/ttyUSB0``), marked ``hardware``. Hardware moves stay within ±60 degrees.
+"""
+
+import os
+import urllib.parse
+
+import pytest
+
+import drivers
+from drivers import DeviceError, InvalidDeviceURL, Turntable
+from drivers.registry import backend_class
+from sim.station import get_station, reset_stations
+
+TOLERANCE = 0.01  # degrees: covers step quantisation of any sane rotary axis
+_HARDWARE_URL = os.environ.get("SCANSTATION_TURNTABLE_URL")
+BACKENDS = [
+    pytest.param("sim://turntable?station=conformance", id="sim-url"),
+    pytest.param("sim://turntable?station=conformance&transport=pty", id="sim-pty"),
+    pytest.param(
+        "sim://turntable?station=conformance&transport=pty&instant=0"
+        "&max_rate=72000&accel=36000&feed=72000",
+        id="sim-realtime",
+    ),
+    pytest.param(
+        _HARDWARE_URL,
+        id="hardware",
+        marks=[pytest.mark.hardware]
+        + ([] if _HARDWARE_URL else [pytest.mark.skip(reason="SCANSTATION_TURNTABLE_URL unset")]),
+    ),
+]
+
+
+@pytest.fixture(params=BACKENDS)
+def url(request):
+    reset_stations()  # a fresh simulated firmware per test
+    yield request.param
+    reset_stations()
+
+
+@pytest.fixture
+def table(url):
+    with drivers.open_turntable(url) as device:
+        yield device
+
+
+def with_param(url: str, extra: str) -> str:
+    return url + ("&" if urllib.parse.urlsplit(url).query else "?") + extra
+
+
+def test_open_gives_an_open_turntable(table):
+    assert isinstance(table, Turntable) and table.is_open
+    assert "open" in repr(table) and table.url
+    assert isinstance(table.angle, float)
+
+
+def test_close_is_safe_to_repeat(url):
+    device = drivers.open_turntable(url)
+    device.close()
+    device.close()
+    assert not device.is_open and "closed" in repr(device)
+    with pytest.raises(DeviceError):
+        device.move_to(1)
+    with drivers.open_turntable(url) as again:  # the port is free again
+        assert again.is_open
+    assert not again.is_open
+
+
+def test_home_zeroes_the_angle(table):
+    table.move_to(12.5)
+    table.home()
+    assert table.angle == pytest.approx(0, abs=TOLERANCE)
+    table.move_to(0)
+    assert table.angle == pytest.approx(0, abs=TOLERANCE)
+
+
+@pytest.mark.parametrize("targets", [(10, 45.5, -30, 0)])
+def test_move_to_reaches_each_target(table, targets):
+    table.home()
+    for target in targets:
+        table.move_to(target)
+        assert table.angle == pytest.approx(target, abs=TOLERANCE)
+
+
+def test_move_by_accumulates(table):
+    table.home()
+    for _ in range(3):
+        table.move_by(15)
+    assert table.angle == pytest.approx(45, abs=TOLERANCE)
+    table.move_by(-45)
+    assert table.angle == pytest.approx(0, abs=TOLERANCE)
+
+
+def test_wait_until_still_when_still(table):
+    table.home()
+    table.move_to(20)
+    table.wait_until_still(timeout=5)
+    assert table.angle == pytest.approx(20, abs=TOLERANCE)
+
+
+def test_stop_when_still_keeps_the_angle_and_allows_moves(table):
+    table.home()
+    table.move_to(20)
+    table.stop()
+    assert table.angle == pytest.approx(20, abs=TOLERANCE)
+    table.move_to(25)
+    assert table.angle == pytest.approx(25, abs=TOLERANCE)
+
+
+def test_unknown_url_parameter_is_rejected(url):
+    with pytest.raises(InvalidDeviceURL):
+        backend_class("turntable", url).from_url(with_param(url, "bogus_parameter=1"))
+
+
+def test_simulated_station_follows_the_table(table, url):
+    if not url.startswith("sim://"):
+        pytest.skip("simulated backends only")
+    station = get_station("conformance")
+    start = station.angle_degrees()
+    table.move_by(33)
+    assert station.angle_degrees() == pytest.approx(start + 33, abs=TOLERANCE)

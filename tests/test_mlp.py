@@ -1,0 +1,161 @@
+"""AdaptiveMLP (the paper's growing search) and its ONNX surface map."""
+
+import pickle
+
+import numpy as np
+import pytest
+
+from reconstruct.errors import InvalidInputError, NotFittedError
+from reconstruct.mlp import SPLIT, AdaptiveMLP
+from reconstruct.surface_map import OnnxSurfaceMap
+
+SMALL = {"max_layers": 2, "max_neurons": 6, "max_epochs": 15, "final_epochs": 40}
+
+
+def paraboloid(n=600, sigma=0.0, seed=0):
+    """(n, 2) parameters in [-1, 1]² and (n, 3) points on z = x² - y² (scaled, offset)."""
+    rng = np.random.default_rng(seed)
+    uv = rng.uniform(-1, 1, size=(n, 2))
+    z = 5 * (uv[:, 0] ** 2 - uv[:, 1] ** 2)
+    xyz = np.column_stack([10 * uv[:, 0] + 50, 10 * uv[:, 1] - 20, z])
+    return uv, xyz + rng.normal(0, sigma, size=xyz.shape)
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    uv, xyz = paraboloid()
+    return AdaptiveMLP(random_state=0, **SMALL).fit(uv, xyz), uv, xyz
+
+
+def test_learns_a_smooth_map_to_well_below_its_scale(fitted):
+    model, uv, xyz = fitted
+    rms = np.sqrt(np.mean((model.predict(uv) - xyz) ** 2))
+    assert rms < 0.05  # the targets span ±10 (x, y) and ±5 (z)
+    fresh_uv, fresh_xyz = paraboloid(200, seed=1)  # and generalises
+    assert np.sqrt(np.mean((model.predict(fresh_uv) - fresh_xyz) ** 2)) < 0.1
+
+
+def test_onnx_equals_torch_within_1e_5(fitted):
+    model, uv, _ = fitted
+    grid = np.stack(np.meshgrid(np.linspace(-1.2, 1.2, 70), np.linspace(-1.2, 1.2, 70)), -1)
+    for probe in (uv, grid.reshape(-1, 2)):
+        np.testing.assert_allclose(model.predict(probe), model.predict_torch(probe), atol=1e-5)
+
+
+def test_search_follows_the_paper(fitted):
+    model, _, _ = fitted
+    searched = [h["layers"] for h in model.history_ if "final" not in h]
+    assert searched[0] == (1,)  # one hidden layer of one neuron first
+    widths = [layers[0] for layers in searched if len(layers) == 1]
+    assert widths == list(range(1, len(widths) + 1))  # then one neuron at a time
+    assert all(len(b) >= len(a) for a, b in zip(searched, searched[1:], strict=False))
+    assert all(len(layers) <= SMALL["max_layers"] for layers in searched)
+    assert max(max(layers) for layers in searched) <= SMALL["max_neurons"]
+    assert model.hidden_layers_ in searched
+    assert SPLIT == (0.85, 0.10, 0.05)
+    for record in model.history_:
+        assert {"train_mse", "test_mse", "validation_mse", "weighted_mse", "epochs"} <= set(record)
+
+
+def test_more_neurons_fit_better_until_the_search_stops(fitted):
+    model, _, _ = fitted
+    first_layer = [h for h in model.history_ if len(h["layers"]) == 1 and "final" not in h]
+    assert first_layer[-1]["weighted_mse"] < 0.1 * first_layer[0]["weighted_mse"]
+
+
+def test_same_seed_same_network():
+    uv, xyz = paraboloid(300, sigma=0.1)
+    a = AdaptiveMLP(random_state=3, **SMALL).fit(uv, xyz)
+    b = AdaptiveMLP(random_state=3, **SMALL).fit(uv, xyz)
+    assert a.hidden_layers_ == b.hidden_layers_
+    np.testing.assert_array_equal(a.predict(uv), b.predict(uv))
+    assert a.surface_map_.to_bytes() == b.surface_map_.to_bytes()
+
+
+@pytest.mark.parametrize("activation", ["sigmoid", "relu"])
+def test_activation_is_selectable(activation):
+    uv, xyz = paraboloid(300)
+    model = AdaptiveMLP(activation=activation, random_state=0, **SMALL).fit(uv, xyz)
+    names = {type(m).__name__.lower() for m in model.torch_model_}
+    assert {"sigmoid": "sigmoid", "relu": "relu"}[activation] in names
+    assert type(list(model.torch_model_)[-1]).__name__ == "Linear"  # linear output
+    np.testing.assert_allclose(model.predict(uv), model.predict_torch(uv), atol=1e-5)
+
+
+def test_retrain_on_all_data_is_recorded():
+    uv, xyz = paraboloid(300)
+    model = AdaptiveMLP(retrain=True, random_state=0, **SMALL).fit(uv, xyz)
+    assert model.history_[-1].get("retrained") is True
+    assert np.sqrt(np.mean((model.predict(uv) - xyz) ** 2)) < 0.2
+
+
+def test_fine_tune_keeps_the_architecture_and_improves_on_new_data(fitted):
+    model, _, _ = fitted
+    uv, xyz = paraboloid(400, seed=5)
+    shifted = xyz + np.array([0.0, 0.0, 0.5])  # the surface moved: a new view refines it
+    before = np.sqrt(np.mean((model.predict(uv) - shifted) ** 2))
+    layers = model.hidden_layers_
+    clone = pickle.loads(pickle.dumps(model))
+    clone.fine_tune(uv, shifted)
+    assert clone.hidden_layers_ == layers
+    assert np.sqrt(np.mean((clone.predict(uv) - shifted) ** 2)) < 0.5 * before
+
+
+def test_surface_map_round_trips_and_pickles(fitted):
+    model, uv, _ = fitted
+    again = OnnxSurfaceMap.from_bytes(model.surface_map_.to_bytes())
+    np.testing.assert_array_equal(again(uv), model.predict(uv))
+    np.testing.assert_array_equal(pickle.loads(pickle.dumps(again))(uv[:5]), again(uv[:5]))
+    assert again(np.empty((0, 2))).shape == (0, 3)
+    with pytest.raises(InvalidInputError, match=r"takes \(n, 2\)"):
+        again(np.zeros((4, 3)))
+
+
+def test_surface_map_rejects_garbage_bytes():
+    with pytest.raises(InvalidInputError, match="not a usable ONNX surface map"):
+        OnnxSurfaceMap(b"definitely not onnx")
+
+
+def test_inference_does_not_need_torch(fitted, tmp_path):
+    import subprocess
+    import sys
+
+    model, _, _ = fitted
+    path = tmp_path / "map.onnx"
+    path.write_bytes(model.surface_map_.to_bytes())
+    code = (
+        "import sys, numpy as np; sys.modules['torch'] = None\n"
+        "from reconstruct.surface_map import OnnxSurfaceMap\n"
+        f"m = OnnxSurfaceMap(open({str(path)!r}, 'rb').read())\n"
+        "print(m(np.zeros((3, 2))).shape)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "(3, 3)"
+
+
+@pytest.mark.parametrize(
+    ("params", "message"),
+    [
+        ({"activation": "swish"}, "activation must be one of"),
+        ({"max_neurons": 0}, "max_neurons must be a whole number >= 1"),
+        ({"test_weight": 2}, r"test_weight must be in \[0, 1\]"),
+    ],
+)
+def test_bad_parameters_are_named(params, message):
+    uv, xyz = paraboloid(100)
+    with pytest.raises(InvalidInputError, match=message):
+        AdaptiveMLP(**params).fit(uv, xyz)
+
+
+def test_bad_samples_are_named():
+    uv, xyz = paraboloid(100)
+    with pytest.raises(InvalidInputError, match="at least 20 samples"):
+        AdaptiveMLP().fit(uv[:10], xyz[:10])
+    bad = xyz.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(InvalidInputError, match="NaN"):
+        AdaptiveMLP().fit(uv, bad)
+    with pytest.raises(InvalidInputError, match=r"\(n, d_in\)"):
+        AdaptiveMLP().fit(uv, xyz[:50])
+    with pytest.raises(NotFittedError):
+        AdaptiveMLP().predict(uv)

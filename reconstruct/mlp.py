@@ -7,8 +7,8 @@ reached; then open the next layer; return the configuration with the best weight
 optionally retrained on all samples. Hidden activation is selectable, the output layer linear.
 
 Training is full-batch L-BFGS in torch (tiny nets are overhead-bound, so few large steps beat many
-small ones); a wider net is warm-started from the narrower one by splitting a neuron (Net2Net),
-which keeps the function. The chosen net is exported to ONNX with its
+small ones). The chosen configuration is then trained to convergence from its searched weights
+and from a fresh start, keeping the better. The chosen net is exported to ONNX with its
 normalisation inside; `predict` and meshing run on onnxruntime.
 """
 
@@ -122,6 +122,9 @@ class AdaptiveMLP(BaseEstimator):
     tol : relative improvement that counts as better.
     test_weight : weight of the test error in the weighted train–test error.
     retrain : retrain the best configuration on all samples (the paper's option).
+    growth : "fresh" trains every configuration from a new initialisation (the paper; measured
+        the more robust: split neurons can stall in a saddle); "net2net" warm-starts each wider
+        net from the narrower one (function-preserving split), a little cheaper.
     max_train_points : training samples are capped (randomly) for speed on large clouds.
     random_state : seed; the same seed gives the same network.
 
@@ -143,6 +146,7 @@ class AdaptiveMLP(BaseEstimator):
         tol: float = 0.005,
         test_weight: float = 0.5,
         retrain: bool = False,
+        growth: str = "fresh",
         max_train_points: int = 6000,
         random_state: int | None = 0,
     ):
@@ -157,6 +161,7 @@ class AdaptiveMLP(BaseEstimator):
         self.tol = tol
         self.test_weight = test_weight
         self.retrain = retrain
+        self.growth = growth
         self.max_train_points = max_train_points
         self.random_state = random_state
 
@@ -166,6 +171,8 @@ class AdaptiveMLP(BaseEstimator):
             raise InvalidInputError(
                 f"activation must be one of {', '.join(ACTIVATIONS)}, got {self.activation!r}"
             )
+        if self.growth not in ("fresh", "net2net"):
+            raise InvalidInputError(f"growth must be 'fresh' or 'net2net', got {self.growth!r}")
         for name in ("max_layers", "max_neurons", "max_epochs", "final_epochs", "steps_per_epoch",
                      "patience",
                      "neuron_patience", "max_train_points"):
@@ -211,7 +218,9 @@ class AdaptiveMLP(BaseEstimator):
                 layer_best, stale, net = None, 0, None
                 for width in range(1, int(self.max_neurons) + 1):
                     layers = (*(best[1] if best else ()), width)  # best earlier layers + 1
-                    if net is None:
+                    if self.growth == "fresh":
+                        net = _build(layers, self.activation, n_in, n_out, generator)
+                    elif net is None:
                         net = (_deepen(previous_layer_net, layers, self.activation, n_in, n_out,
                                        generator)
                                if previous_layer_net is not None
@@ -353,12 +362,18 @@ class AdaptiveMLP(BaseEstimator):
     def _train_final(self, net, tensors, generator):
         """Train the chosen configuration to convergence, both from its warm-started weights and
         from a fresh initialisation (growth can settle in a poorer basin); keep the better by
-        the weighted train–test error, the search's own criterion."""
+        the weighted train–test error, the search's own criterion. The search is over, so the
+        held-out test and validation samples together decide the early stop (a steadier signal
+        than the 5 % validation split alone)."""
+        torch = _torch()
+        held_out = tuple(torch.cat(pair) for pair in zip(tensors["test"], tensors["validation"],
+                                                         strict=True))
+        final = dict(tensors, validation=held_out)
         n_in, n_out = _linears(net)[0].in_features, _linears(net)[-1].out_features
         fresh = _build(self.hidden_layers_, self.activation, n_in, n_out, generator)
         candidates = []
         for start, label in ((net, "warm"), (fresh, "fresh")):
-            record = self._train(start, tensors, self.final_epochs)
+            record = self._train(start, final, self.final_epochs)
             record.update(layers=self.hidden_layers_, final=label)
             self.history_.append(record)
             candidates.append((record["weighted_mse"], label == "fresh", start))

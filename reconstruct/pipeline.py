@@ -30,9 +30,11 @@ from .validation import check_points
 
 log = logging.getLogger(__name__)
 
-#: Default smoothing λ (allowed mean squared spline residual as a fraction of the boundary
-#: interpolants' variance), chosen from bench/quality.py.
-DEFAULT_LAM = 0.002
+#: Default smoothing λ, chosen from bench/quality.py. The spline's s = λ · m · var where var is
+#: the interpolants' jaggedness (`BoundarySpline(variance="local")`): λ = 1 is Dierckx's own
+#: s ≈ m σ²; the paper's λ = 2.4 is of this order. The "global" reading (var = spread about the
+#: centroid) either shrinks the boundary (λ ≥ 0.002) or lets the spline cross itself (smaller λ).
+DEFAULT_LAM = 2.0
 STATE_FORMAT = "scanstation-reconstruction/1"
 _MESH_PARAMS = ("lam", "depth", "n_corners", "boundary", "grid_spacing")
 
@@ -133,7 +135,7 @@ class SurfaceReconstructor(BaseEstimator):
         self._check_mesh_params()
         started = time.perf_counter()
         interpolants = self._boundary_points()
-        spline = BoundarySpline(lam=self.lam).fit(interpolants)
+        spline = BoundarySpline(lam=self.lam, variance="local").fit(interpolants)
         spacing = self.grid_spacing or default_spacing(spline.polygon_, len(self.embedding_))
         boundary_vertices = spline.sample_by_spacing(spacing)
         vertices_2d, faces = mesh_inside(spline.polygon_, boundary_vertices, spacing)

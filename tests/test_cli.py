@@ -26,7 +26,7 @@ def test_reconstruct_then_remesh(tmp_path, capsys):
     mesh = trimesh.load(out, force="mesh")
     assert len(mesh.faces) > 100
     again = tmp_path / "again.stl"
-    assert main(["--quiet", "remesh", str(state), "-o", str(again), "--lam", "0.01"]) == 0
+    assert main(["--quiet", "remesh", str(state), "-o", str(again), "--lam", "4"]) == 0
     assert len(trimesh.load(again, force="mesh").faces) > 100
 
 

@@ -1,0 +1,196 @@
+"""Speed of the reconstruction engine on this machine, each against its peer in the same run.
+
+    python -m bench.speed [--skip embedding training remesh endtoend] [--sizes 1600 20000 100000]
+
+1. Embedding: ours vs scikit-learn's Isomap (see bench/speed_embedding.py; ratio and Procrustes
+   disparity against the S-curve's true parameters).
+2. Adaptive search: our AdaptiveMLP (torch, L-BFGS, Net2Net growth) vs the same search (same
+   split, same growth order and stopping rule) with scikit-learn's MLPRegressor (adam, early
+   stopping); time and the fit's RMS distance to the noise-free points.
+3. Re-mesh latency of a ~50k-vertex mesh through the saved ONNX map (median of repeats, λ
+   alternating), against evaluating the same vertices through the torch network.
+4. End to end (read → mesh) on the noisy sphere cap at each size, each in a fresh process, with
+   its peak resident memory. Targets: 1,600 ≤ 10 s, 20,000 ≤ 30 s, 100,000 ≤ 120 s, ≤ 4 GB.
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing
+import os
+import resource
+import statistics
+import time
+import warnings
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from bench.speed_embedding import print_table as print_embedding_table  # noqa: E402
+from bench.speed_embedding import run_embedding_bench  # noqa: E402
+from reconstruct.embedding import SurfaceEmbedding  # noqa: E402
+from reconstruct.mlp import SPLIT, AdaptiveMLP  # noqa: E402
+from reconstruct.pipeline import SurfaceReconstructor  # noqa: E402
+from sim.shapes import make_shape  # noqa: E402
+
+SEARCH = {"max_layers": 2, "max_neurons": 20}
+
+
+def sklearn_search(uv, xyz, max_layers, max_neurons, neuron_patience=3, tol=0.005, seed=0):
+    """The paper's growth with MLPRegressor: returns (hidden layers, predict function)."""
+    from sklearn.exceptions import ConvergenceWarning
+    from sklearn.neural_network import MLPRegressor
+
+    rng = np.random.default_rng(seed)
+    x_mean, x_scale = uv.mean(0), uv.std(0).max()
+    y_mean, y_scale = xyz.mean(0), xyz.std(0)
+    x, y = (uv - x_mean) / x_scale, (xyz - y_mean) / y_scale
+    order = rng.permutation(len(x))
+    n_train, n_test = int(round(SPLIT[0] * len(x))), int(round(SPLIT[1] * len(x)))
+    train, test = order[:n_train], order[n_train : n_train + n_test]
+    fit_rows = np.concatenate([train, order[n_train + n_test :]])  # train + validation
+    best = None
+    warnings.simplefilter("ignore", ConvergenceWarning)
+    for _ in range(max_layers):
+        layer_best, stale = None, 0
+        for width in range(1, max_neurons + 1):
+            layers = (*(best[1] if best else ()), width)
+            net = MLPRegressor(
+                hidden_layer_sizes=layers, activation="tanh", solver="adam", max_iter=300,
+                early_stopping=True, validation_fraction=SPLIT[2] / (SPLIT[0] + SPLIT[2]),
+                n_iter_no_change=10, random_state=seed,
+            ).fit(x[fit_rows], y[fit_rows])
+            score = 0.5 * np.mean((net.predict(x[train]) - y[train]) ** 2) + 0.5 * np.mean(
+                (net.predict(x[test]) - y[test]) ** 2
+            )
+            if layer_best is None or score < layer_best[0] * (1 - tol):
+                layer_best, stale = (score, layers, net), 0
+            else:
+                stale += 1
+                if stale >= neuron_patience:
+                    break
+        if best is not None and layer_best[0] >= best[0] * (1 - tol):
+            break
+        if best is None or layer_best[0] < best[0]:
+            best = layer_best
+    net = best[2]
+    return best[1], lambda q: net.predict((q - x_mean) / x_scale) * y_scale + y_mean
+
+
+def training_bench(sizes=(1600, 20000), seed=0) -> list[dict]:
+    rows = []
+    for n in sizes:
+        shape = make_shape("sphere_cap", n, noise=0.01, random_state=seed)
+        embedding = SurfaceEmbedding(random_state=seed).fit(shape.points)
+        uv, xyz = embedding.embedding_, shape.points[embedding.support_]
+        clean = shape.clean[embedding.support_]
+        started = time.perf_counter()
+        ours = AdaptiveMLP(random_state=seed, **SEARCH).fit(uv, xyz)
+        ours_s = time.perf_counter() - started
+        started = time.perf_counter()
+        layers, predict = sklearn_search(uv, xyz, seed=seed, **SEARCH)
+        peer_s = time.perf_counter() - started
+
+        def rms(p, clean=clean):
+            return float(np.sqrt(np.mean(np.sum((p - clean) ** 2, axis=1))))
+
+        rows.append({"n": n, "ours_s": ours_s, "ours_layers": ours.hidden_layers_,
+                     "ours_rms": rms(ours.predict(uv)), "sk_s": peer_s, "sk_layers": layers,
+                     "sk_rms": rms(predict(uv)), "input_rms": rms(xyz)})
+        print(f"  training n={n} done", flush=True)
+    return rows
+
+
+def remesh_bench(seed=0, repeats=7) -> dict:
+    shape = make_shape("sphere_cap", 20000, noise=0.01, random_state=seed)
+    model = SurfaceReconstructor(random_state=seed).fit(shape.points)
+    # the grid spacing that gives ~50k vertices inside the boundary polygon
+    polygon = model.spline_.polygon_
+    x, y = polygon[:, 0], polygon[:, 1]
+    area = 0.5 * abs(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1)))
+    spacing = float(np.sqrt(area / 50000))
+    times, vertices = [], 0
+    for i in range(repeats):
+        lam = (2.0, 3.0)[i % 2]
+        started = time.perf_counter()
+        mesh = model.remesh(lam=lam, grid_spacing=spacing)
+        times.append(time.perf_counter() - started)
+        vertices = len(mesh.vertices)
+    uv = model.vertices_2d_
+    onnx_t, torch_t = [], []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        model.surface_map_(uv)
+        onnx_t.append(time.perf_counter() - started)
+        started = time.perf_counter()
+        model.mlp_.predict_torch(uv)
+        torch_t.append(time.perf_counter() - started)
+    return {"vertices": vertices, "remesh_ms": 1000 * statistics.median(times),
+            "onnx_ms": 1000 * statistics.median(onnx_t),
+            "torch_ms": 1000 * statistics.median(torch_t)}
+
+
+def _end_to_end(n, seed, queue):
+    import torch
+
+    torch.set_num_threads(1)
+    warnings.simplefilter("ignore")
+    shape = make_shape("sphere_cap", n, noise=0.01, random_state=seed)
+    started = time.perf_counter()
+    model = SurfaceReconstructor(random_state=seed).fit(shape.points)
+    seconds = time.perf_counter() - started
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB → GiB
+    queue.put({"n": n, "seconds": seconds, "peak_gb": peak, "faces": len(model.mesh_.faces),
+               "method": model.embedding_method_, "layers": model.hidden_layers_})
+
+
+def end_to_end_bench(sizes, seed=0) -> list[dict]:
+    rows = []
+    context = multiprocessing.get_context("spawn")
+    for n in sizes:
+        queue = context.Queue()
+        process = context.Process(target=_end_to_end, args=(n, seed, queue))
+        process.start()
+        rows.append(queue.get())
+        process.join()
+        print(f"  end to end n={n} done", flush=True)
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--skip", nargs="*", default=[])
+    parser.add_argument("--sizes", nargs="+", type=int, default=[1600, 20000, 100000])
+    args = parser.parse_args()
+    warnings.simplefilter("ignore")
+    if "embedding" not in args.skip:
+        print_embedding_table(run_embedding_bench())
+    if "training" not in args.skip:
+        rows = training_bench()
+        print("\nAdaptive search (sphere cap, σ = 1 %): ours vs scikit-learn MLPRegressor")
+        print(f"{'N':>7}{'ours s':>9}{'layers':>10}{'rms':>9}{'sklearn s':>11}{'layers':>10}"
+              f"{'rms':>9}{'ratio':>8}{'input rms':>11}")
+        for r in rows:
+            print(f"{r['n']:>7}{r['ours_s']:>9.2f}{str(r['ours_layers']):>10}{r['ours_rms']:>9.4f}"
+                  f"{r['sk_s']:>11.2f}{str(r['sk_layers']):>10}{r['sk_rms']:>9.4f}"
+                  f"{r['sk_s'] / r['ours_s']:>8.1f}{r['input_rms']:>11.4f}")
+    if "remesh" not in args.skip:
+        r = remesh_bench()
+        print("\nRe-mesh without retraining (target ≤ 150 ms at 50k vertices)")
+        print(f"{'vertices':>9}{'remesh ms':>11}{'onnx map ms':>13}{'torch map ms':>14}")
+        print(f"{r['vertices']:>9}{r['remesh_ms']:>11.1f}{r['onnx_ms']:>13.1f}{r['torch_ms']:>14.1f}")
+    if "endtoend" not in args.skip:
+        rows = end_to_end_bench(args.sizes)
+        targets = {1600: 10, 20000: 30, 100000: 120}
+        print("\nEnd to end (sphere cap, σ = 1 %, fresh process each)")
+        print(f"{'N':>7}{'seconds':>9}{'target':>8}{'peak GB':>9}{'faces':>8}  method / layers")
+        for r in rows:
+            target = targets.get(r["n"], float("nan"))
+            print(f"{r['n']:>7}{r['seconds']:>9.2f}{target:>8.0f}{r['peak_gb']:>9.2f}"
+                  f"{r['faces']:>8}  {r['method']} {r['layers']}")
+
+
+if __name__ == "__main__":
+    main()

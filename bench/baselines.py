@@ -17,6 +17,7 @@ def open3d_available() -> bool:
 def _cloud_with_normals(points: np.ndarray, k: int = 20):
     import open3d as o3d
 
+    points = np.array(points, dtype=np.float64, order="C")  # Open3D needs a writeable copy
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=k))
     cloud.orient_normals_consistent_tangent_plane(k)

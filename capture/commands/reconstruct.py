@@ -9,10 +9,12 @@ log = logging.getLogger("capture.cli")
 
 def add_reconstruction_options(parser, *, defaults=True) -> None:
     """Options shared by every command that reconstructs (reconstruct, scan, replay)."""
-    from reconstruct.pipeline import DEFAULT_LAM
+    from reconstruct.pipeline import DEFAULT_DEPTH, DEFAULT_LAM
 
     parser.add_argument("--lam", type=float, default=DEFAULT_LAM, help="spline smoothing λ")
-    parser.add_argument("--depth", type=int, default=3, help="boundary path depths (default 3)")
+    parser.add_argument(
+        "--depth", type=int, default=DEFAULT_DEPTH, help=f"boundary path depths ({DEFAULT_DEPTH})"
+    )
     parser.add_argument(
         "--embedding",
         choices=("auto", "isomap", "mlle", "landmark"),

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import os
-import resource
 import statistics
 import time
 import warnings
@@ -79,7 +78,9 @@ def _ours_alone(n_points: int, seed: int, queue) -> None:
     started = time.perf_counter()
     model = SurfaceEmbedding(random_state=seed).fit(shape.points)
     seconds = time.perf_counter() - started
-    peak_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6  # Linux: kB
+    from bench.speed import peak_memory_gb
+
+    peak_gb = peak_memory_gb()
     disparity = procrustes(shape.params[model.support_], model.embedding_)[2]
     queue.put(
         {

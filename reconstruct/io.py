@@ -103,19 +103,31 @@ def check_mesh_path(path: str | os.PathLike) -> Path:
     return path
 
 
-def write_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> Path:
-    """Write ``mesh`` in the format given by the extension, atomically (temp file + rename)."""
-    path = check_mesh_path(path)
+def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary file and a rename (no half-written file is
+    ever visible), fsynced, with the usual permissions (0666 less the umask)."""
+    path = Path(path)
     directory = path.parent if str(path.parent) else Path(".")
-    data = mesh.export(file_type=path.suffix.lower()[1:])
-    if isinstance(data, str):
-        data = data.encode("utf-8")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=directory)
     try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
+            handle.flush()
+            os.fsync(handle.fileno())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def write_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> Path:
+    """Write ``mesh`` in the format given by the extension, atomically (temp file + rename)."""
+    path = check_mesh_path(path)
+    data = mesh.export(file_type=path.suffix.lower()[1:])
+    if isinstance(data, str):
+        data = data.encode("utf-8")
+    return write_bytes_atomic(path, data)

@@ -11,7 +11,6 @@ import io
 import json
 import logging
 import os
-import tempfile
 import time
 from pathlib import Path
 
@@ -22,6 +21,7 @@ from sklearn.base import BaseEstimator
 from .boundary import MultiDepthBoundary, PCABoundary
 from .embedding import SurfaceEmbedding
 from .errors import InvalidInputError, NotFittedError
+from .io import write_bytes_atomic
 from .meshing import default_spacing, mesh_inside
 from .mlp import AdaptiveMLP
 from .spline import BoundarySpline
@@ -206,16 +206,7 @@ class SurfaceReconstructor(BaseEstimator):
             points=self.points_,
             onnx=np.frombuffer(self.surface_map_.to_bytes(), dtype=np.uint8),
         )
-        directory = path.parent if str(path.parent) else Path(".")
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=directory)
-        try:
-            with os.fdopen(fd, "wb") as handle:
-                handle.write(buffer.getvalue())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        return path
+        return write_bytes_atomic(path, buffer.getvalue())
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> SurfaceReconstructor:

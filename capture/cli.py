@@ -9,7 +9,7 @@ import sys
 import warnings
 
 #: sub-command modules, imported lazily so `scanstation --help` stays fast.
-COMMANDS = ("demo", "reconstruct", "remesh", "devices")
+COMMANDS = ("demo", "scan", "replay", "calibrate", "reconstruct", "remesh", "devices", "serve")
 EXPECTED_ERRORS: tuple[type[BaseException], ...] = (OSError, ValueError)
 
 
@@ -44,6 +44,7 @@ def _setup_output(quiet: bool, verbose: bool) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from capture.runner import CaptureError
     from drivers.errors import DeviceError
     from reconstruct.errors import ReconstructionError
 
@@ -55,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("scanstation: interrupted", file=sys.stderr)
         return 130
-    except (ReconstructionError, DeviceError, *EXPECTED_ERRORS) as exc:
+    except (ReconstructionError, DeviceError, CaptureError, *EXPECTED_ERRORS) as exc:
         if args.verbose:
             raise
         print(f"scanstation: error: {exc}", file=sys.stderr)

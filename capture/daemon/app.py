@@ -1,0 +1,241 @@
+"""The daemon's HTTP API (FastAPI): devices, scans, downloads, live events, the web page.
+
+`create_app` builds the application for one state dir. Paths are stable (others build on them):
+``/api/v1/devices``, ``/api/v1/scans[/{id}[/pause|resume|cancel|reprocess|refine|mesh|recording|
+report|events]]``, ``/healthz``, ``/docs`` (OpenAPI, assets served locally), ``/`` (web page).
+Errors answer ``{"detail": "<one line>"}``: 401 without the token when one is required, 404
+unknown scan or missing file, 409 busy device or wrong state, 413 body too large, 422 bad input.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+from pathlib import Path
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, FastAPI, Header, Query, Request
+from fastapi import Path as PathParam
+from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
+from fastapi.staticfiles import StaticFiles
+
+from . import downloads
+from .auth import BearerAuth
+from .errors import Conflict, InvalidRequest, OutsideScanFolder, Unavailable, UnknownScan
+from .events import SSE_KEEPALIVE, EventHub, sse_message
+from .isolation import warm_up
+from .jobs import ScanJobs, default_runner_factory
+from .limits import BodySizeLimit
+from .refine import MeshRefiner
+from .schemas import SCAN_ID_PATTERN, MeshFormat, RefineRequest, ScanRequest
+from .store import JobStore
+
+log = logging.getLogger(__name__)
+
+STATIC = Path(__file__).with_name("static")
+DATABASE = "daemon.sqlite3"
+ScanId = Annotated[str, PathParam(pattern=SCAN_ID_PATTERN, description="16 hex digits")]
+
+
+def create_app(state_dir: str | Path, *, token: str = "", require_token: bool = False,
+               runner_factory=default_runner_factory, refiner: MeshRefiner | None = None,
+               max_body_bytes: int = 1 << 20, heartbeat_s: float = 15.0):
+    """The ASGI app (wrapped in the body size limit). The job store opens, and scans left
+    active by a previous process become ``interrupted``, when the app starts (lifespan)."""
+    state_dir = Path(state_dir)
+    auth = BearerAuth(token, require_token)
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI):
+        state_dir.mkdir(parents=True, exist_ok=True)
+        if runner_factory is default_runner_factory:
+            threading.Thread(target=warm_up, name="forkserver-warm-up", daemon=True).start()
+        store = JobStore(state_dir / DATABASE)
+        app.state.interrupted_at_start = store.recover()
+        if app.state.interrupted_at_start:
+            log.warning("scans interrupted by the last stop (resume or re-process them): %s",
+                        ", ".join(app.state.interrupted_at_start))
+        app.state.jobs = ScanJobs(state_dir, store, EventHub(), runner_factory, refiner)
+        try:
+            yield
+        finally:
+            app.state.jobs.shutdown()
+            store.close()
+
+    app = FastAPI(title="ScanStation daemon", version="1", lifespan=lifespan, docs_url=None,
+                  redoc_url=None, description=__doc__)
+    app.state.auth = auth
+    app.state.heartbeat_s = heartbeat_s
+    _add_error_handlers(app)
+    app.include_router(_api_router(), prefix="/api/v1", dependencies=[Depends(auth)])
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+
+    @app.get("/healthz", tags=["daemon"])
+    async def healthz(request: Request) -> dict:
+        jobs: ScanJobs = request.app.state.jobs
+        return {"status": "ok", "busy_devices": len(jobs.busy_devices()),
+                "token_required": request.app.state.auth.required}
+
+    @app.get("/", include_in_schema=False)
+    def index() -> FileResponse:
+        return FileResponse(STATIC / "index.html")
+
+    @app.get("/docs", include_in_schema=False)
+    def docs():
+        return get_swagger_ui_html(
+            openapi_url="/openapi.json", title="ScanStation daemon API",
+            swagger_js_url="/static/vendor/swagger-ui-bundle.js",
+            swagger_css_url="/static/vendor/swagger-ui.css",
+            swagger_favicon_url="/static/favicon.svg")
+
+    return BodySizeLimit(app, max_body_bytes)
+
+
+async def _jobs(request: Request) -> ScanJobs:  # async: no thread hop for a dependency
+    return request.app.state.jobs
+
+
+Jobs = Annotated[ScanJobs, Depends(_jobs)]
+
+
+def _public(jobs: ScanJobs, record, files: bool = False) -> dict:
+    data = record.to_public()
+    if files:
+        data["files"] = downloads.available(jobs.scan_dir(record),
+                                            record.mesh_params.get("file"))
+    return data
+
+
+def _api_router() -> APIRouter:
+    api = APIRouter()
+
+    @api.get("/devices", tags=["devices"])
+    def devices(jobs: Jobs) -> dict:
+        """Every backend (status, visible devices) and the devices held by running scans."""
+        from drivers.registry import list_devices
+
+        busy = jobs.busy_devices()
+        backends = [{"kind": kind, "scheme": scheme, "status": status, "urls": urls}
+                    for kind, scheme, status, urls in list_devices()]
+        return {"backends": backends,
+                "busy": [{"device": key, "scan": scan} for key, scan in sorted(busy.items())]}
+
+    @api.post("/scans", status_code=201, tags=["scans"])
+    def create_scan(body: ScanRequest, jobs: Jobs) -> dict:
+        """Start a scan from a plan and device URLs (none: the simulated station)."""
+        return _public(jobs, jobs.create(body))
+
+    @api.get("/scans", tags=["scans"])
+    def list_scans(jobs: Jobs, limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+                   offset: Annotated[int, Query(ge=0)] = 0) -> dict:
+        return {"scans": [_public(jobs, r) for r in jobs.list(limit, offset)]}
+
+    @api.get("/scans/{scan_id}", tags=["scans"])
+    async def get_scan(scan_id: ScanId, jobs: Jobs) -> dict:
+        """The scan with its ``state``, ``progress`` and downloadable ``files`` (answered from
+        memory on the event loop: status polls stay fast while scans run)."""
+        return _public(jobs, jobs.get(scan_id), files=True)
+
+    @api.delete("/scans/{scan_id}", status_code=204, tags=["scans"])
+    def delete_scan(scan_id: ScanId, jobs: Jobs) -> Response:
+        jobs.delete(scan_id)
+        return Response(status_code=204)
+
+    @api.post("/scans/{scan_id}/pause", status_code=202, tags=["scans"])
+    def pause_scan(scan_id: ScanId, jobs: Jobs) -> dict:
+        """Pause at the next safe point (between frames or views)."""
+        return _public(jobs, jobs.pause(scan_id))
+
+    @api.post("/scans/{scan_id}/resume", status_code=202, tags=["scans"])
+    def resume_scan(scan_id: ScanId, jobs: Jobs) -> dict:
+        """Resume a paused scan, or an interrupted one from its last completed view."""
+        return _public(jobs, jobs.resume(scan_id))
+
+    @api.post("/scans/{scan_id}/cancel", status_code=202, tags=["scans"])
+    def cancel_scan(scan_id: ScanId, jobs: Jobs) -> dict:
+        """Stop after the current step; the recording keeps every completed view."""
+        return _public(jobs, jobs.cancel(scan_id))
+
+    @api.post("/scans/{scan_id}/reprocess", status_code=202, tags=["scans"])
+    def reprocess_scan(scan_id: ScanId, jobs: Jobs) -> dict:
+        """Rebuild the mesh and report from the recording alone (no devices)."""
+        return _public(jobs, jobs.reprocess(scan_id))
+
+    @api.post("/scans/{scan_id}/refine", tags=["scans"])
+    def refine_scan(scan_id: ScanId, body: RefineRequest, jobs: Jobs) -> dict:
+        """A new mesh version with a new λ / boundary depth, through ONNX (no retraining)."""
+        return _public(jobs, jobs.refine(scan_id, body.lam, body.depth), files=True)
+
+    @api.get("/scans/{scan_id}/mesh", tags=["downloads"])
+    def get_mesh(scan_id: ScanId, jobs: Jobs, format: MeshFormat = "ply") -> Response:
+        record = jobs.get(scan_id)
+        path = downloads.mesh_file(jobs.scan_dir(record), record.mesh_params.get("file"))
+        name = f"scan-{scan_id}-v{record.mesh_version}.{format}"
+        headers = {"Content-Disposition": f'attachment; filename="{name}"',
+                   "Cache-Control": "no-store"}
+        return Response(downloads.mesh_bytes(path, format), headers=headers,
+                        media_type=downloads.MEDIA_TYPES[format])
+
+    @api.get("/scans/{scan_id}/recording", tags=["downloads"])
+    def get_recording(scan_id: ScanId, jobs: Jobs,
+                      segment: Annotated[int, Query(ge=1, le=10_000)] = 1) -> FileResponse:
+        """One MCAP segment (a resumed scan has one per run: 1, 2, …)."""
+        path = downloads.recording_file(jobs.scan_dir(jobs.get(scan_id)), segment)
+        return FileResponse(path, media_type="application/octet-stream",
+                            filename=f"scan-{scan_id}-{path.name}")
+
+    @api.get("/scans/{scan_id}/report", tags=["downloads"])
+    def get_report(scan_id: ScanId, jobs: Jobs) -> FileResponse:
+        path = downloads.report_file(jobs.scan_dir(jobs.get(scan_id)))
+        return FileResponse(path, media_type="application/json",
+                            filename=f"scan-{scan_id}.json")
+
+    @api.get("/scans/{scan_id}/events", tags=["events"])
+    async def scan_events(
+        scan_id: ScanId, request: Request,
+        last_event_id: Annotated[str | None, Header()] = None,
+        after: Annotated[int, Query(ge=0, description="skip documents up to this id")] = 0,
+    ) -> StreamingResponse:
+        """Server-Sent Events: the scan's documents (``data``: JSON with ``kind``), numbered
+        (``id``); the stream ends when the scan does. Reconnecting with ``Last-Event-ID``
+        resumes after the last document received."""
+        jobs: ScanJobs = request.app.state.jobs
+        channel = jobs.channel(scan_id)
+        if last_event_id is not None and last_event_id.strip().isdigit():
+            after = max(after, int(last_event_id))
+        heartbeat = request.app.state.heartbeat_s
+
+        async def stream():
+            yield b"retry: 2000\n\n"
+            async for item in channel.stream(after, heartbeat):
+                yield SSE_KEEPALIVE if item is None else sse_message(*item)
+
+        return StreamingResponse(stream(), media_type="text/event-stream",
+                                 headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
+
+    return api
+
+
+def _add_error_handlers(app: FastAPI) -> None:
+    def reply(status: int):
+        async def handler(request: Request, exc: Exception) -> JSONResponse:
+            return JSONResponse({"detail": str(exc)}, status_code=status)
+        return handler
+
+    app.add_exception_handler(UnknownScan, reply(404))
+    app.add_exception_handler(Unavailable, reply(404))
+    app.add_exception_handler(OutsideScanFolder, reply(404))
+    app.add_exception_handler(Conflict, reply(409))
+    app.add_exception_handler(InvalidRequest, reply(422))
+
+    async def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = exc.errors()
+        lines = [f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in errors]
+        return JSONResponse({"detail": "; ".join(lines) or "invalid request",
+                             "errors": [{"loc": e["loc"], "msg": e["msg"]} for e in errors]},
+                            status_code=422)
+
+    app.add_exception_handler(RequestValidationError, invalid)

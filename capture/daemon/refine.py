@@ -1,0 +1,70 @@
+"""Re-meshing a finished scan with a new λ / boundary depth, through ONNX, with no training.
+
+`capture.engine` saves the reconstruction (every patch's network and boundary state) in the
+scan folder; loading it costs more than a re-mesh, so the last few loaded engines are kept, and
+a λ slider moved by an operator re-meshes in milliseconds. Each refine writes
+``mesh-lam{λ}-depth{d}.ply`` in the scan folder (as `capture.engine.refine` does).
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import os
+import threading
+from pathlib import Path
+
+from .errors import Conflict
+
+
+@dataclasses.dataclass(frozen=True)
+class RefineResult:
+    lam: float
+    depth: int
+    file: str  # mesh file name inside the scan folder
+    figures: dict
+
+
+class MeshRefiner:
+    """Loaded engines by scan id (the ``cache_size`` most recent); one refine per scan at a time."""
+
+    def __init__(self, cache_size: int = 4):
+        self.cache_size = cache_size
+        self._engines: collections.OrderedDict[str, object] = collections.OrderedDict()
+        self._locks: dict[str, threading.Lock] = {}
+        self._lock = threading.Lock()
+
+    def refine(self, scan_id: str, folder: Path, lam: float | None,
+               depth: int | None) -> RefineResult:
+        """Re-mesh and write the mesh; `Conflict` when the scan has no saved reconstruction."""
+        from capture.engine import EngineError, IncrementalEngine
+
+        with self._lock:
+            scan_lock = self._locks.setdefault(scan_id, threading.Lock())
+        with scan_lock:
+            with self._lock:
+                engine = self._engines.get(scan_id)
+                if engine is not None:
+                    self._engines.move_to_end(scan_id)
+            if engine is None:
+                try:
+                    engine = IncrementalEngine.load(folder)
+                except EngineError as exc:
+                    raise Conflict(f"scan {scan_id} has no saved reconstruction to refine") \
+                        from exc
+                with self._lock:
+                    self._engines[scan_id] = engine
+                    while len(self._engines) > self.cache_size:
+                        self._engines.popitem(last=False)
+            engine.refine(lam, depth)
+            figures = dict(engine.figures)
+            name = f"mesh-lam{figures['lam']:g}-depth{figures['depth']}.ply"
+            partial = folder / f".{name}.part"
+            engine.mesh.export(partial, file_type="ply")
+            os.replace(partial, folder / name)  # a download never sees half a file
+        return RefineResult(float(figures["lam"]), int(figures["depth"]), name, figures)
+
+    def forget(self, scan_id: str) -> None:
+        with self._lock:
+            self._engines.pop(scan_id, None)
+            self._locks.pop(scan_id, None)

@@ -1,0 +1,92 @@
+"""Request bodies of the API, and the checks that turn a scan request into something runnable.
+
+Pydantic checks shapes and types (422 with the field named); `check_scan_request` then checks
+meaning — a plan that can run, device URLs that a backend understands, an object the simulated
+camera can load — so that a bad request fails at once with one line, never later in a thread.
+"""
+
+from __future__ import annotations
+
+import re
+import urllib.parse
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from capture.plan import ScanPlan
+from capture.station import is_simulated, station_urls
+from drivers.registry import backend_class
+
+#: scan ids the daemon makes: 16 lowercase hex digits (also what a path may contain)
+SCAN_ID_PATTERN = r"^[0-9a-f]{16}$"
+MESH_FORMATS = ("ply", "obj", "stl", "glb")
+MAX_URL = 512
+
+
+class ScanRequest(BaseModel):
+    """POST /api/v1/scans: a plan (`capture.plan.ScanPlan` as JSON; missing fields take their
+    defaults) and device URLs; none → the simulated station, whose camera shows ``object``
+    (a built-in name or a mesh file on the station)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    plan: dict[str, Any] = Field(default_factory=dict, description="ScanPlan fields")
+    camera_url: str | None = Field(default=None, max_length=MAX_URL, examples=["oak://"])
+    turntable_url: str | None = Field(
+        default=None, max_length=MAX_URL, examples=["grbl:///dev/ttyUSB0"]
+    )
+    object: str | None = Field(default=None, min_length=1, max_length=1024, examples=["vase"])
+
+
+class RefineRequest(BaseModel):
+    """POST …/refine: new spline smoothing λ and/or boundary depth (missing: keep the current)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    lam: float | None = Field(default=None, ge=0, le=1e6, allow_inf_nan=False)
+    depth: int | None = Field(default=None, ge=1, le=16)
+
+
+MeshFormat = Literal["ply", "obj", "stl", "glb"]
+
+
+def check_scan_request(request: ScanRequest) -> ScanPlan:
+    """The validated plan; raises ValueError (one line) for anything that cannot run.
+
+    Device URLs must name a known backend with valid parameters (the device is built, not
+    opened); ``object`` needs the simulated camera and must load.
+    """
+    plan = ScanPlan.from_dict(request.plan)
+    for kind, url in (("camera", request.camera_url), ("turntable", request.turntable_url)):
+        if url is not None:
+            backend_class(kind, url).from_url(url)
+    if request.object is not None:
+        camera_url, _ = station_urls(request.camera_url, request.turntable_url, request.object)
+        camera = backend_class("camera", camera_url).from_url(camera_url)
+        camera.true_object_mesh()  # loads the object: a bad name or file fails here
+    return plan
+
+
+def device_keys(camera_url: str | None, turntable_url: str | None) -> list[str]:
+    """What a scan holds while it runs: each device's URL without options (scheme, host, path).
+
+    A simulated device is one per simulated station, so its key names the station; a simulated
+    URL without a station (or no URL at all) gets a fresh station of its own and holds nothing.
+    """
+    keys = []
+    for kind, url in (("camera", camera_url), ("turntable", turntable_url)):
+        if url is None:
+            continue
+        parts = urllib.parse.urlsplit(url)
+        if is_simulated(url):
+            station = urllib.parse.parse_qs(parts.query).get("station")
+            if not station:
+                continue
+            keys.append(f"sim://{kind}?station={station[-1]}")
+        else:
+            keys.append(urllib.parse.urlunsplit(parts._replace(query="", fragment="")))
+    return keys
+
+
+def is_scan_id(text: str) -> bool:
+    return re.fullmatch(SCAN_ID_PATTERN, text) is not None

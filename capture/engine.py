@@ -1,0 +1,276 @@
+"""The incremental engine: views stream in, the mesh grows and refines while the object turns.
+
+Views (object-frame points) merge into a `VoxelCloud`. After every ``update_every`` views, and
+after the last view (`finish`), the engine reconstructs the closed object as patches
+(`CachedPatches`): a patch is first fitted once its coverage stops growing, then it keeps its
+fit until it grows by ``min_growth`` (and is fine-tuned from its own network: a warm start); the
+last update polishes every patch on the final points. Updates run in order on one worker thread,
+so the meshes depend only on the views (a replay gives the same mesh), never on timing. Each new
+mesh goes to ``on_mesh``. `refine` re-meshes every patch through its ONNX map with a new λ /
+depth: no training.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import json
+import logging
+import multiprocessing
+import queue
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from reconstruct.pipeline import SurfaceReconstructor
+
+from .cloud import VoxelCloud
+from .patch_cache import CachedPatches, PatchCache, PatchFit
+from .plan import ReconstructionParams
+
+log = logging.getLogger(__name__)
+
+STATE_DIR = "engine"
+_STOP = object()
+
+
+class EngineError(RuntimeError):
+    """The engine failed or was used out of order (the message names the cause)."""
+
+
+class IncrementalEngine:
+    """Merge views and keep an up-to-date mesh.
+
+    params : `ReconstructionParams`.  on_mesh : callable(engine, figures) after each new mesh
+    (from the worker thread).  background : run updates on a worker thread (else inline).
+    workers : processes fitting patches in parallel (1: in the engine's thread). The result
+    does not depend on it.  total_views : views the scan will have, when known: the update
+    that would fall on the last view is left to `finish`.
+    schedule : view counts after which to update (a replay passes the live scan's, recorded in
+        its mesh documents as ``figures["schedule"]``). None: every ``update_every`` views, and
+        an update still queued when a newer one arrives is skipped, so the engine never lags
+        more than one update behind the turntable.
+    Attributes: ``mesh`` (trimesh.Trimesh or None), ``version`` (0 until the first mesh),
+    ``figures`` (dict of the last update), ``cloud`` (`VoxelCloud`), ``views`` (count),
+    ``schedule_run`` (view counts of the updates run so far, the final one excluded).
+    """
+
+    def __init__(self, params: ReconstructionParams, on_mesh=None, background: bool = True,
+                 workers: int = 1, total_views: int | None = None, schedule=None):
+        self.params = params
+        self.total_views = total_views
+        self.schedule = None if schedule is None else sorted(int(v) for v in schedule)
+        self.schedule_run: list[int] = []
+        self.workers = int(workers)
+        self._executor = None
+        self.on_mesh = on_mesh
+        self.cloud = VoxelCloud(params.voxel_mm)
+        self.cache = PatchCache(params)
+        self.patches = CachedPatches.for_params(self.cache)
+        self.mesh: trimesh.Trimesh | None = None
+        self.version = 0
+        self.figures: dict = {}
+        self.views = 0
+        self.error: BaseException | None = None
+        self._last_update = 0  # views at the last scheduled update
+        self._fitted_points: np.ndarray | None = None
+        self._lock = threading.Lock()
+        self._queue: queue.Queue = queue.Queue()
+        self._thread = None
+        if self.workers > 1:
+            self._executor = concurrent.futures.ProcessPoolExecutor(
+                self.workers, mp_context=multiprocessing.get_context("spawn"))
+            for _ in range(self.workers):  # import torch & co. while the scan starts
+                self._executor.submit(_warm_up)
+        if background:
+            self._thread = threading.Thread(target=self._work, name="scan-engine", daemon=True)
+            self._thread.start()
+
+    @property
+    def fitted_points(self) -> np.ndarray | None:
+        """(m, 3) the merged points the current mesh was fitted to, mm (None before a mesh)."""
+        return self._fitted_points
+
+    # -- feeding -------------------------------------------------------------------------------
+    def add_view(self, points) -> bool:
+        """Merge one view's (n, 3) object-frame points, mm; True when it scheduled an update."""
+        self.cloud.add(points)
+        self.views += 1
+        p = self.params
+        if self.schedule is not None:
+            due = self.views in self.schedule
+        else:
+            due = bool(p.update_every) and self.views - self._last_update >= p.update_every
+            due = due and self.views != self.total_views
+        if due:
+            self._schedule(final=False)
+        return due
+
+    def finish(self, timeout: float | None = None) -> trimesh.Trimesh | None:
+        """Schedule the final reconstruction of all views and wait for every update."""
+        self._schedule(final=True)
+        self.wait(timeout)
+        return self.mesh
+
+    def _schedule(self, final: bool) -> None:
+        self._last_update = self.views
+        task = ("update", self.cloud.points(self.params.min_views), self.views, final)
+        if self._thread is None:
+            self._run(task)
+        else:
+            self._queue.put(task)
+
+    def wait(self, timeout: float | None = None) -> None:
+        """Block until every scheduled update ran; re-raise the engine's failure if any."""
+        if self._thread is not None:
+            deadline = None if timeout is None else time.monotonic() + timeout
+            with self._queue.all_tasks_done:
+                while self._queue.unfinished_tasks:
+                    left = None if deadline is None else deadline - time.monotonic()
+                    if left is not None and left <= 0:
+                        raise EngineError(f"reconstruction still running after {timeout} s")
+                    self._queue.all_tasks_done.wait(left)
+        if self.error is not None:
+            raise EngineError(f"reconstruction failed: {self.error}") from self.error
+
+    def cancel(self) -> None:
+        """Drop updates not started yet (the one running finishes)."""
+        while True:
+            try:
+                self._queue.get_nowait()
+            except queue.Empty:
+                return
+            self._queue.task_done()
+
+    def close(self) -> None:
+        """Stop the worker after the update in progress; safe to repeat."""
+        if self._thread is not None:
+            self.cancel()
+            self._queue.put(_STOP)
+            self._thread.join()
+            self._thread = None
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor = None
+
+    # -- work ----------------------------------------------------------------------------------
+    def _work(self) -> None:
+        while True:
+            task = self._queue.get()
+            try:
+                if task is _STOP:
+                    return
+                stale = self.schedule is None and not task[3] and not self._queue.empty()
+                if self.error is None and not stale:  # (a newer update is waiting: skip)
+                    self._run(task)
+            except Exception as exc:  # kept and re-raised by wait(): the scan decides
+                log.error("reconstruction failed: %s", exc)
+                self.error = exc
+            finally:
+                self._queue.task_done()
+
+    def _run(self, task) -> None:
+        _, points, views, final = task
+        started = time.perf_counter()
+        if not final:
+            self.schedule_run.append(views)
+        before = dict(self.cache.counts)
+        patches = self.patches.fit_cloud(points, final=final, executor=self._executor)
+        if len(patches.mesh_.faces) == 0:
+            log.info("update after %d views: no patch is ready yet", views)
+            return
+        counts = {k: v - before[k] for k, v in self.cache.counts.items()}
+        self._publish(patches.mesh_, points, {
+            "views": views,
+            "final": final,
+            "points": len(points),
+            "seconds": time.perf_counter() - started,
+            "patches": len(patches.patch_names_) - len(patches.waiting_),
+            "patches_waiting": len(patches.waiting_),
+            **{f"patches_{k}": v for k, v in counts.items()},
+            "schedule": list(self.schedule_run),
+        })
+
+    def _publish(self, mesh, points, figures: dict) -> None:
+        with self._lock:
+            self.mesh = mesh
+            self._fitted_points = points
+            self.version += 1
+            self.figures = {"version": self.version, "vertices": len(mesh.vertices),
+                            "faces": len(mesh.faces), **figures}
+        log.info("mesh v%d after %d views: %d faces (%.1f s)", self.version, figures["views"],
+                 len(mesh.faces), figures["seconds"])
+        if self.on_mesh is not None:
+            self.on_mesh(self, dict(self.figures))
+
+    # -- refine and persistence -----------------------------------------------------------------
+    def refine(self, lam: float | None = None, depth: int | None = None) -> int:
+        """Re-mesh every patch with a new λ and/or depth (ONNX, no training); new version."""
+        self.wait()
+        if self._fitted_points is None:
+            raise EngineError("nothing to refine: no mesh yet")
+        lam = self.params.lam if lam is None else float(lam)
+        depth = self.params.depth if depth is None else int(depth)
+        started = time.perf_counter()
+        patches = self.patches.remesh_cloud(self._fitted_points, lam, depth)
+        self._publish(patches.mesh_, self._fitted_points, {
+            "views": self.figures.get("views", self.views), "final": True, "lam": lam,
+            "depth": depth, "points": len(self._fitted_points), "refined": True,
+            "seconds": time.perf_counter() - started,
+        })
+        return self.version
+
+    def save(self, directory) -> Path:
+        """Write the cloud and every patch fit (re-meshable) to ``directory``/engine."""
+        self.wait()
+        target = Path(directory) / STATE_DIR
+        target.mkdir(parents=True, exist_ok=True)
+        names = sorted(self.cache.fits)
+        for i, name in enumerate(names):
+            self.cache.fits[name].model.save(target / f"patch-{i}.npz")
+        np.save(target / "fitted_points.npy", self._fitted_points)
+        (target / "engine.json").write_text(json.dumps({
+            "params": self.params.__dict__, "patches": names, "version": self.version,
+            "figures": self.figures,
+        }, indent=1))
+        return target
+
+    @classmethod
+    def load(cls, directory) -> IncrementalEngine:
+        """An engine that can `refine` the reconstruction saved in ``directory``/engine."""
+        source = Path(directory) / STATE_DIR
+        try:
+            meta = json.loads((source / "engine.json").read_text())
+            points = np.load(source / "fitted_points.npy")
+        except (OSError, ValueError) as exc:
+            raise EngineError(f"{directory}: no saved reconstruction ({exc})") from exc
+        engine = cls(ReconstructionParams(**meta["params"]), background=False)
+        for i, name in enumerate(meta["patches"]):
+            model = SurfaceReconstructor.load(source / f"patch-{i}.npz")
+            engine.cache.fits[name] = PatchFit(model, "", 0)
+        engine._fitted_points = points
+        engine.version = int(meta["version"])
+        engine.figures = dict(meta.get("figures", {}))
+        return engine
+
+
+def _warm_up() -> None:
+    import reconstruct.mlp
+    import reconstruct.pipeline  # noqa: F401  (and torch, onnxruntime)
+
+    reconstruct.mlp._torch()
+
+
+def refine(source, lam: float | None = None, depth: int | None = None):
+    """Re-mesh without retraining. ``source``: an `IncrementalEngine` (returns the new mesh
+    version) or a scan directory (writes and returns ``mesh-lam{λ}-depth{d}.ply`` beside it)."""
+    if isinstance(source, IncrementalEngine):
+        return source.refine(lam, depth)
+    engine = IncrementalEngine.load(source)
+    engine.refine(lam, depth)
+    f = engine.figures
+    path = Path(source) / f"mesh-lam{f['lam']:g}-depth{f['depth']}.ply"
+    engine.mesh.export(path)
+    return path

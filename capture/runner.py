@@ -1,0 +1,345 @@
+"""The scan runner: executes a `ScanPlan` on a station (states: `capture.lifecycle`).
+
+`start()` checks the output folder (writable, room for the recording) and opens the station
+BEFORE anything moves, then a worker thread runs the views: move, settle, grab, combine per
+pixel, record (the view's chunk is synced), process, feed the engine, emit documents. A lost
+device (`DeviceDisconnected`, `DeviceTimeout`) pauses the scan with a message, reconnects with
+backoff for ``plan.reconnect_timeout_s``, then resumes at the view it was on; views already
+recorded are never redone or lost. `pause()` takes effect between views or frames.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+import uuid
+from pathlib import Path
+
+from drivers.errors import DeviceDisconnected, DeviceTimeout
+
+from .combine import combine_depths
+from .documents import (
+    ErrorDocument,
+    MeshDocument,
+    PausedDocument,
+    ProgressDocument,
+    ResumedDocument,
+    StartDocument,
+    StopDocument,
+    ViewDocument,
+)
+from .engine import IncrementalEngine
+from .lifecycle import (  # noqa: F401  (re-exported: the runner's public names)
+    TERMINAL,
+    TRANSITIONS,
+    Cancelled,
+    CaptureError,
+    InvalidTransition,
+    RunLifecycle,
+)
+from .outputs import ScanOutputs
+from .plan import ScanPlan
+from .processing import ViewProcessor
+from .recording import RecordingWriter, next_segment, read_recording
+from .station import Station, open_station
+
+log = logging.getLogger(__name__)
+
+
+class DeviceLost(CaptureError):
+    """A device call failed with a disconnect or a timeout (``device``: which one)."""
+
+    def __init__(self, device: str, cause: Exception):
+        super().__init__(f"{device} lost: {cause}")
+        self.device, self.cause = device, cause
+
+
+class ScanRunner(RunLifecycle):
+    """Run one scan (or resume one). See the module docstring for the life cycle.
+
+    plan : `ScanPlan` (None: the resumed recording's, else the default 36-view plan).
+    camera_url, turntable_url, object : the station (`capture.station.open_station`); or
+        ``station``: an open `Station` (e.g. `capture.replay.replay_station`), owned and closed.
+    out_dir : folder for recording.mcap, mesh.ply, scan.json.
+    resume_from : a scan folder whose recording is replayed into the engine; the remaining
+        views are captured into a new segment (``recording-2.mcap``…) in ``out_dir``.
+    record : write the MCAP recording (replays do not).
+    calibration : a `Calibration` or calibration file (default: the simulator's truth, or the
+        resumed recording's).  seed : simulated camera noise seed.
+    workers : processes for the engine's patch fits (the mesh does not depend on it).
+    schedule : the engine's update schedule (`IncrementalEngine`; replays pass the live one).
+    """
+
+    def __init__(self, plan: ScanPlan | None = None, camera_url=None, turntable_url=None,
+                 object=None, out_dir="scan", resume_from=None, *, station: Station | None = None,
+                 calibration=None, record: bool = True, seed: int = 0, workers: int = 1,
+                 schedule=None):
+        self.out_dir = Path(resume_from if resume_from is not None and out_dir == "scan"
+                            else out_dir)
+        self.resume_from = None if resume_from is None else Path(resume_from)
+        self._plan = plan
+        self._station_args = (camera_url, turntable_url, object, calibration, seed)
+        self.station = station
+        self.record = record
+        self.workers = workers
+        self.schedule = schedule
+        self.scan_id = uuid.uuid4().hex
+        super().__init__()
+        self.engine: IncrementalEngine | None = None
+        self.plan: ScanPlan | None = plan
+        self._thread: threading.Thread | None = None
+        self._recorder: RecordingWriter | None = None
+        self._started = 0.0
+        self.reason = ""
+        self.image_shape: tuple[int, int] | None = None
+        self.error: BaseException | None = None
+
+    @classmethod
+    def resume_recording(cls, out_dir, **kwargs) -> ScanRunner:
+        """A runner (not started) continuing the interrupted scan in ``out_dir``."""
+        return cls(resume_from=out_dir, out_dir=out_dir, **kwargs)
+
+    def wait(self, timeout: float | None = None) -> str:
+        """Block until the scan is done, failed or interrupted (or ``timeout`` s); the state."""
+        with self._changed:
+            self._changed.wait_for(lambda: self._state in TERMINAL, timeout)
+        if self._thread is not None and self._state in TERMINAL:
+            self._thread.join()
+        return self._state
+
+    def start(self) -> ScanRunner:
+        """Check the output, open the station, then run the views on a worker thread.
+
+        Raises `CaptureError` (and ends ``failed``) when the scan cannot start; nothing has
+        moved then."""
+        self._transition("start")
+        self._started = time.monotonic()
+        try:
+            self._prepare()
+        except Exception as exc:
+            self._fail_early(exc)
+            raise CaptureError(str(exc)) from exc
+        self._thread = threading.Thread(target=self._main, name="scan-runner", daemon=True)
+        self._thread.start()
+        return self
+
+    # -- preparation (before anything moves) ----------------------------------------------------
+    def _prepare(self) -> None:
+        camera_url, turntable_url, object, calibration, seed = self._station_args
+        recorded = []
+        if self.resume_from is not None:
+            recording = read_recording(self.resume_from)
+            self._plan = self._plan or recording.plan
+            calibration = calibration or recording.calibration
+            if self.station is None and camera_url is None and turntable_url is None:
+                camera_url = recording.station.get("camera")
+                turntable_url = recording.station.get("turntable")
+            recorded = recording.views
+        self.plan = (self._plan or ScanPlan()).validate()
+        self.outputs = ScanOutputs(self.out_dir)
+        self.outputs.check_writable()
+        if self.station is None:
+            self.station = open_station(camera_url, turntable_url, object, calibration, seed)
+        self.outputs.check_space(self.plan, self.station.camera.intrinsics, self.record)
+        done = {v.index for v in recorded}
+        self._recorded = recorded
+        self._pending = [i for i in range(self.plan.n_views) if i not in done]
+        self._views_done = len(recorded)
+        self._raw_points: list = []
+        self.processor = ViewProcessor(
+            self.station.calibration, self.plan.volume, voxel_mm=self.plan.voxel_mm,
+            outlier_neighbors=self.plan.outlier_neighbors, outlier_std=self.plan.outlier_std)
+        if self.plan.reconstruction is not None:
+            self.engine = IncrementalEngine(self.plan.reconstruction, on_mesh=self._on_mesh,
+                                            workers=self.workers, total_views=self.plan.n_views,
+                                            schedule=self.schedule)
+        if self.record:
+            self.segment, path = next_segment(self.out_dir)
+            self._recorder = RecordingWriter(
+                path, self.plan, self.station.calibration, self.station.describe(),
+                self.scan_id, self.segment).open()
+        else:
+            self.segment = 0
+
+    def _fail_early(self, exc: Exception) -> None:
+        self.error, self.reason = exc, str(exc)
+        log.error("scan cannot start: %s", exc)
+        self._emit(ErrorDocument, error=type(exc).__name__, message=str(exc))
+        self._emit(StopDocument, state="failed", reason=str(exc), views_done=0,
+                   views_total=self._plan.n_views if self._plan else 0, files={})
+        self._close()
+        self._transition("fail")
+
+    # -- the worker ----------------------------------------------------------------------------
+    def _main(self) -> None:
+        try:
+            self._emit(StartDocument, scan_id=self.scan_id, plan=self.plan.to_dict(),
+                       calibration=json.loads(self.station.calibration.to_json()),
+                       station=self.station.describe(), segment=self.segment,
+                       resumed_views=len(self._recorded))
+            self._feed_recorded()
+            for index in self._pending:
+                measured, frames = self._capture_with_recovery(index)
+                self._complete_view(index, measured, frames)
+            self._capture_s = time.monotonic() - self._started
+            self._transition("stop")
+            self._finish()
+            self._end("done", f"all {self.plan.n_views} views captured")
+        except Cancelled:
+            if self._state != "stopping":
+                self._transition("stop")
+            self._end("interrupt", "cancelled by the user")
+        except Exception as exc:
+            self.error = exc
+            log.error("scan failed: %s", exc)
+            try:
+                self._emit(ErrorDocument, error=type(exc).__name__, message=str(exc))
+            finally:
+                self._end("fail", str(exc))
+        finally:
+            self._close()
+
+    def _feed_recorded(self) -> None:
+        """Resume: the recorded views go through processing and the engine, in their order."""
+        for view in self._recorded:
+            self.image_shape = view.frames[0].shape
+            combined = combine_depths(view.frames, self.plan.combine)
+            self._process(combined, view.measured_angle_deg)
+        if self._recorded:
+            log.info("resumed %d recorded views; %d to capture", len(self._recorded),
+                     len(self._pending))
+
+    def _process(self, combined, angle_deg: float) -> int:
+        points = self.processor.process(combined, angle_deg)
+        self._raw_points.append(points)
+        if self.engine is not None:
+            self.engine.add_view(points)
+        return len(points)
+
+    def _device(self, name: str, call, *args):
+        try:
+            return call(*args)
+        except (DeviceDisconnected, DeviceTimeout) as exc:
+            raise DeviceLost(name, exc) from exc
+
+    def _capture_view(self, index: int):
+        """Move, settle, read the angle back, grab the frames: (measured angle, frames)."""
+        table, camera = self.station.turntable, self.station.camera
+        self._checkpoint(index)
+        self._device("turntable", table.move_to, self.plan.angles[index])
+        if self.plan.settle_s and self._cancel_requested.wait(self.plan.settle_s):
+            raise Cancelled
+        measured = float(self._device("turntable", lambda: table.angle))
+        frames = []
+        for _ in range(self.plan.frames_per_view):
+            self._checkpoint(index)
+            frames.append(self._device("camera", camera.grab))
+        return measured, frames
+
+    def _capture_with_recovery(self, index: int):
+        while True:
+            try:
+                return self._capture_view(index)
+            except DeviceLost as lost:
+                self._recover(lost, index)
+
+    def _recover(self, lost: DeviceLost, index: int) -> None:
+        """Paused until ``lost.device`` is back (retries with backoff); then resume the view."""
+        n = self.plan.n_views
+        message = (f"{lost.device} disconnected at view {index + 1}/{n} ({lost.cause}); "
+                   f"reconnecting")
+        log.warning("scan paused: %s", message)
+        self._resume_requested.clear()
+        self._transition("pause")
+        self._emit(PausedDocument, reason="device", message=message, view_index=index)
+        limit = self.plan.reconnect_timeout_s
+        while not self._reconnect(lost.device, limit):
+            if self.plan.on_device_lost == "fail":
+                raise CaptureError(f"{lost.device} did not come back within {limit:g} s "
+                                   f"({lost.cause}); {self._views_done} views are recorded")
+            log.warning("%s still gone after %g s: the scan stays paused (resume() retries, "
+                        "cancel() stops; recorded views are kept)", lost.device, limit)
+            self._block_until_resumed()
+        log.info("%s reconnected: resuming at view %d/%d", lost.device, index + 1, n)
+        self._transition("resume")
+        self._emit(ResumedDocument, message=f"{lost.device} reconnected; resuming at view "
+                   f"{index + 1}/{n}", view_index=index)
+
+    def _reconnect(self, device: str, limit: float) -> bool:
+        deadline, delay = time.monotonic() + limit, 0.05
+        while True:
+            if self._cancel_requested.is_set():
+                raise Cancelled
+            try:
+                self.station.reconnect(device)
+                return True
+            except (OSError, ValueError) as exc:  # device errors are OSError / ValueError too
+                log.info("reconnecting %s failed: %s", device, exc)
+            if time.monotonic() + delay > deadline:
+                return False
+            if self._cancel_requested.wait(delay):
+                raise Cancelled
+            delay = min(2 * delay, 2.0)
+
+    def _complete_view(self, index: int, measured: float, frames) -> None:
+        depths = [f.depth for f in frames]
+        self.image_shape = depths[0].shape
+        combined = combine_depths(depths, self.plan.combine)
+        self._emit(ViewDocument, index=index, angle_deg=self.plan.angles[index],
+                   measured_angle_deg=measured, n_frames=len(frames),
+                   valid_pixels=int((combined > 0).sum()),
+                   timestamps=tuple(float(f.timestamp) for f in frames), frames=tuple(depths))
+        self._views_done += 1
+        n_points = self._process(combined, measured)
+        self._emit(ProgressDocument, views_done=self._views_done, views_total=self.plan.n_views,
+                   view_points=n_points,
+                   cloud_points=len(self.engine.cloud) if self.engine else 0,
+                   elapsed_s=time.monotonic() - self._started)
+
+    def _on_mesh(self, engine: IncrementalEngine, figures: dict) -> None:
+        self._emit(MeshDocument, version=figures["version"], views=figures["views"],
+                   final=bool(figures.get("final")), figures=figures)
+
+    # -- the end -------------------------------------------------------------------------------
+    def _finish(self) -> None:
+        if self.engine is None:
+            return
+        started = time.monotonic()
+        mesh = self.engine.finish()
+        self._final_mesh_s = time.monotonic() - started
+        if mesh is None:
+            raise CaptureError("no mesh: too few points in the working volume (is the object "
+                               "inside it?)")
+        self.outputs.write_mesh(mesh)
+        self.outputs.write_engine(self.engine)
+
+    def _end(self, event: str, reason: str) -> None:
+        """Report, emit the stop document and reach the final state, whatever fails on the way
+        (the recording already holds every completed view)."""
+        state = TRANSITIONS[(self._state, event)]
+        self.reason = reason
+        try:
+            if self.engine is not None and state != "done":
+                self.engine.cancel()
+            files = {}
+            try:
+                files = self.outputs.write_report(self, state)
+            except Exception as exc:
+                log.error("could not write scan.json: %s", exc)
+            self._emit(StopDocument, state=state, reason=reason, views_done=self._views_done,
+                       views_total=self.plan.n_views, files=files)
+        except Exception as exc:
+            log.error("ending the scan: %s", exc)
+        finally:
+            self._transition(event)
+
+    def _close(self) -> None:
+        for closer in (self.engine and self.engine.close, self._recorder and self._recorder.close,
+                       self.station and self.station.close):
+            if closer:
+                try:
+                    closer()
+                except Exception as exc:
+                    log.warning("closing after the scan failed: %s", exc)

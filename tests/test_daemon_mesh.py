@@ -1,0 +1,107 @@
+"""Meshes through the daemon: a real (small) reconstruction, downloads in four formats, refine
+through ONNX with no retraining, and re-processing from the recording."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+import trimesh
+from fastapi.testclient import TestClient
+from test_daemon_helpers import MESH_CAMERA, capture_plan, mesh_plan, station_urls, wait_for_state
+
+from capture.daemon.app import create_app
+
+
+@pytest.fixture(scope="module")
+def scanned(tmp_path_factory):
+    """(state dir, scan JSON) of one 6-view scan reconstructed by the real engine."""
+    state_dir = tmp_path_factory.mktemp("daemon") / "state"
+    with TestClient(create_app(state_dir)) as client:
+        body = {"plan": mesh_plan(6), **station_urls(**MESH_CAMERA)}
+        scan = client.post("/api/v1/scans", json=body).json()
+        done = wait_for_state(client, scan["id"], "done", "failed", timeout=300)
+    assert done["state"] == "done", done["reason"]
+    return state_dir, done
+
+
+@pytest.fixture
+def finished(scanned):
+    """(client, scan, state dir): a daemon started on the state dir holding the scan."""
+    state_dir, scan = scanned
+    with TestClient(create_app(state_dir)) as client:
+        yield client, client.get(f"/api/v1/scans/{scan['id']}").json(), state_dir
+
+
+def load(content: bytes, fmt: str) -> trimesh.Trimesh:
+    return trimesh.load(io.BytesIO(content), file_type=fmt, force="mesh", process=False)
+
+
+def test_the_mesh_downloads_in_four_formats(finished):
+    client, scan, _ = finished
+    assert scan["files"]["mesh"] and scan["mesh_version"] >= 1
+    meshes = {}
+    for fmt in ("ply", "obj", "stl", "glb"):
+        answer = client.get(f"/api/v1/scans/{scan['id']}/mesh", params={"format": fmt})
+        assert answer.status_code == 200, fmt
+        assert answer.headers["content-disposition"].endswith(f'.{fmt}"')
+        meshes[fmt] = load(answer.content, fmt)
+    faces = len(meshes["ply"].faces)
+    assert faces > 500
+    assert all(len(mesh.faces) == faces for mesh in meshes.values())
+    bounds = meshes["ply"].bounds
+    for fmt in ("obj", "stl", "glb"):
+        assert np.allclose(meshes[fmt].bounds, bounds, atol=1e-3), fmt
+
+
+def test_refine_makes_new_mesh_versions_without_retraining(finished):
+    client, scan, state_dir = finished
+    scan_id = scan["id"]
+    before = client.get(f"/api/v1/scans/{scan_id}/mesh").content
+    engine_files = sorted((state_dir / "scans" / scan_id / "engine").iterdir())
+    stamps = [path.stat().st_mtime_ns for path in engine_files]
+
+    refined = client.post(f"/api/v1/scans/{scan_id}/refine", json={"lam": 6.0})
+    assert refined.status_code == 200, refined.text
+    first = refined.json()
+    assert first["mesh_version"] == scan["mesh_version"] + 1
+    assert first["mesh_params"] == {"lam": 6.0, "depth": 2, "file": "mesh-lam6-depth2.ply"}
+    after = client.get(f"/api/v1/scans/{scan_id}/mesh").content
+    assert after != before
+    second = client.post(f"/api/v1/scans/{scan_id}/refine", json={"depth": 3}).json()
+    assert second["mesh_version"] == first["mesh_version"] + 1
+    assert second["mesh_params"]["lam"] == 6.0 and second["mesh_params"]["depth"] == 3
+    # the networks were not touched: only meshed again
+    assert [p.stat().st_mtime_ns for p in engine_files] == stamps
+    text = client.get(f"/api/v1/scans/{scan_id}/events").text
+    docs = [json.loads(line[6:]) for line in text.splitlines() if line.startswith("data: ")]
+    refines = [d for d in docs if d["kind"] == "refined"]
+    assert [d["version"] for d in refines][-2:] == [first["mesh_version"], second["mesh_version"]]
+    assert refines[-1]["figures"]["refined"] is True
+
+
+def test_refine_needs_a_saved_reconstruction(finished):
+    client, _, _ = finished
+    body = {"plan": capture_plan(2), **station_urls()}
+    scan = client.post("/api/v1/scans", json=body).json()
+    wait_for_state(client, scan["id"], "done")
+    answer = client.post(f"/api/v1/scans/{scan['id']}/refine", json={"lam": 2})
+    assert answer.status_code == 409
+    assert "no saved reconstruction" in answer.json()["detail"]
+
+
+def test_reprocess_rebuilds_the_mesh_from_the_recording(finished):
+    client, scan, _ = finished
+    scan_id = scan["id"]
+    answer = client.post(f"/api/v1/scans/{scan_id}/reprocess")
+    assert answer.status_code == 202
+    assert answer.json()["state"] in ("processing", "done")
+    assert client.post(f"/api/v1/scans/{scan_id}/refine", json={}).status_code in (200, 409)
+    done = wait_for_state(client, scan_id, "done", "failed", timeout=300)
+    assert done["state"] == "done", done["reason"]
+    assert done["mesh_params"]["file"] == "mesh.ply"
+    assert done["files"]["recording_segments"] == 1  # re-processing records nothing
+    mesh = load(client.get(f"/api/v1/scans/{scan_id}/mesh").content, "ply")
+    assert len(mesh.faces) > 500

@@ -1,0 +1,101 @@
+"""The daemon's SQLite job store: WAL, JSON fields, restart recovery, thread safety."""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+
+import pytest
+
+from capture.daemon.store import ACTIVE_STATES, JobStore, ScanRecord
+
+
+def record(scan_id: str, state: str = "running", created: float = 1.0) -> ScanRecord:
+    return ScanRecord(id=scan_id, state=state, devices=["grbl:///dev/ttyUSB0"],
+                      request={"plan": {"angles": [0.0, 90.0]}, "camera_url": "oak://"},
+                      out_dir=f"scans/{scan_id}", created=created, updated=created)
+
+
+@pytest.fixture
+def store(tmp_path):
+    store = JobStore(tmp_path / "jobs.sqlite3")
+    yield store
+    store.close()
+
+
+def test_the_store_uses_wal_and_round_trips_records(store):
+    assert store.journal_mode() == "wal"
+    store.insert(record("a" * 16))
+    store.update("a" * 16, progress={"views_done": 1, "views_total": 2, "fraction": 0.5},
+                 mesh_version=3, mesh_params={"lam": 2.0, "depth": 2, "file": "mesh.ply"})
+    got = store.get("a" * 16)
+    assert got.request == {"plan": {"angles": [0.0, 90.0]}, "camera_url": "oak://"}
+    assert got.devices == ["grbl:///dev/ttyUSB0"]
+    assert got.progress["fraction"] == 0.5 and got.mesh_version == 3
+    assert got.mesh_params["file"] == "mesh.ply"
+    assert got.updated > got.created
+    public = got.to_public()
+    assert "out_dir" not in public and public["camera_url"] == "oak://"
+    assert store.get("b" * 16) is None
+
+
+def test_restart_lists_every_scan_left_active_as_interrupted(tmp_path):
+    path = tmp_path / "jobs.sqlite3"
+    first = JobStore(path)
+    for i, state in enumerate((*ACTIVE_STATES, "processing", "done", "failed", "interrupted")):
+        first.insert(record(f"{i:016x}", state, created=float(i)))
+    # the process dies without closing: a second process opens the same file
+    second = JobStore(path)
+    recovered = second.recover()
+    assert recovered == [f"{i:016x}" for i in range(5)]
+    states = {r.id: r.state for r in second.list()}
+    assert set(states.values()) == {"interrupted", "done", "failed"}
+    assert states[f"{5:016x}"] == "done" and states[f"{6:016x}"] == "failed"
+    assert "daemon stopped" in second.get(f"{0:016x}").reason
+    assert second.recover() == []  # nothing left to recover
+    first.close()
+    second.close()
+
+
+def test_list_is_newest_first_with_paging_and_delete(store):
+    for i in range(5):
+        store.insert(record(f"{i:016x}", "done", created=float(i)))
+    assert [r.id for r in store.list(2)] == [f"{4:016x}", f"{3:016x}"]
+    assert [r.id for r in store.list(2, offset=4)] == [f"{0:016x}"]
+    assert store.delete(f"{4:016x}") and not store.delete(f"{4:016x}")
+    assert len(store.list()) == 4
+
+
+def test_bad_updates_are_refused(store):
+    store.insert(record("c" * 16))
+    with pytest.raises(ValueError, match="colour"):
+        store.update("c" * 16, colour="red")
+    with pytest.raises(ValueError, match="unknown scan state 'exploded'"):
+        store.update("c" * 16, state="exploded")
+    with pytest.raises(sqlite3.IntegrityError):
+        store.insert(record("c" * 16))
+
+
+def test_a_newer_schema_is_refused(tmp_path):
+    path = tmp_path / "jobs.sqlite3"
+    with sqlite3.connect(path) as db:
+        db.execute("PRAGMA user_version=99")
+    with pytest.raises(RuntimeError, match="newer than this daemon"):
+        JobStore(path)
+
+
+def test_threads_update_one_store_safely(store):
+    ids = [f"{i:016x}" for i in range(8)]
+    for scan_id in ids:
+        store.insert(record(scan_id))
+
+    def work(scan_id):
+        for n in range(50):
+            store.update(scan_id, progress={"views_done": n + 1})
+
+    threads = [threading.Thread(target=work, args=(scan_id,)) for scan_id in ids]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert all(store.get(scan_id).progress == {"views_done": 50} for scan_id in ids)

@@ -1,0 +1,153 @@
+"""The incremental engine: merged cloud, updates as views stream in, warm starts, determinism,
+re-meshing without retraining, and its saved state."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from capture.cloud import VoxelCloud
+from capture.engine import EngineError, IncrementalEngine, refine
+from capture.plan import ReconstructionParams
+from capture.warm_start import align_embedding, fit_fresh, fit_warm
+from reconstruct.metrics import distance_to_surface, sample_surface
+
+#: Tiny networks and coarse voxels: the engine's logic, not the paper's accuracy, is on test.
+FAST = ReconstructionParams(
+    max_layers=1, max_neurons=5, max_epochs=6, final_epochs=30, max_train_points=400,
+    polish_epochs=40, polish_patience=6, polish_train_points=600, voxel_mm=4.0, min_views=1,
+    n_sectors=3, overlap_deg=20.0, cap_fraction=0.15, cap_overlap_mm=6.0, update_every=3,
+    min_patch_points=40,
+)
+
+
+def capped_cylinder() -> trimesh.Trimesh:
+    """A 40 mm radius, 100 mm tall surface of revolution with a domed top, open at the bottom."""
+    z = np.linspace(0, 100, 26)
+    t = np.linspace(0, np.pi / 2, 10)[1:]
+    profile = np.r_[np.c_[np.full(len(z), 40.0), z], np.c_[40 * np.cos(t), 100 + 20 * np.sin(t)]]
+    return trimesh.creation.revolve(profile, sections=64)
+
+
+def views(mesh, n_views=12, seed=0):
+    """What a camera at azimuth -90° - θ sees for each table angle θ: the points facing it,
+    rotated into the object frame, with 0.3 mm noise; one (m, 3) array per view."""
+    points, faces = trimesh.sample.sample_surface_even(mesh, 6000, seed=seed)
+    normals = mesh.face_normals[faces]
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n_views):
+        a = np.radians(-90.0 - 360.0 * k / n_views)
+        to_camera = np.array([np.cos(a), np.sin(a), 0.5])
+        seen = normals @ to_camera > 0.2
+        out.append(points[seen] + rng.normal(0, 0.3, (seen.sum(), 3)))
+    return out
+
+
+@pytest.fixture(scope="module")
+def stream():
+    return capped_cylinder(), views(capped_cylinder())
+
+
+def run_engine(stream_views, **kwargs):
+    figures = []
+    engine = IncrementalEngine(FAST, on_mesh=lambda e, f: figures.append(f), **kwargs)
+    try:
+        for points in stream_views:
+            engine.add_view(points)
+        engine.finish(timeout=120)
+    finally:
+        engine.close()
+    return engine, figures
+
+
+def test_voxel_cloud_averages_and_counts_views():
+    cloud = VoxelCloud(2.0)
+    assert cloud.add([[0.5, 0.5, 0.5], [5.0, 5.0, 5.0]]) == 2
+    assert cloud.add([[1.5, 1.5, 1.5]]) == 0  # same voxel as the first point
+    np.testing.assert_allclose(cloud.points(), [[1, 1, 1], [5, 5, 5]])
+    np.testing.assert_allclose(cloud.points(min_views=2), [[1, 1, 1]])
+    other = VoxelCloud(2.0)
+    other.add([[1.5, 1.5, 1.5]])
+    other.add([[0.5, 0.5, 0.5], [5.0, 5.0, 5.0]])
+    np.testing.assert_allclose(other.points(), cloud.points())
+    with pytest.raises(ValueError, match="voxel_mm must be > 0"):
+        VoxelCloud(0)
+
+
+def test_meshes_grow_with_the_views_and_the_last_one_is_final(stream):
+    truth, stream_views = stream
+    engine, figures = run_engine(stream_views, total_views=len(stream_views), background=False)
+    assert [f["version"] for f in figures] == list(range(1, len(figures) + 1))
+    assert len(figures) >= 2 and figures[-1]["final"] and not figures[0]["final"]
+    assert figures[0]["views"] < figures[-1]["views"] == 12
+    assert [f["views"] for f in figures].count(12) == 1  # no extra update on the last view
+    assert figures[-1]["patches"] == 4 and figures[-1]["patches_waiting"] == 0
+    assert figures[-1]["patches_fresh"] + figures[-1]["patches_warm"] >= 1
+    assert sum(f["patches_warm"] for f in figures) >= 1  # later fits start from earlier nets
+    assert sum(f["patches_fresh"] for f in figures) >= 1  # the search ran …
+    assert sum(f["patches_fixed"] for f in figures) >= 1  # … and its architecture was reused
+    assert {m.hidden_layers_ for m in (f.model for f in engine.cache.fits.values())} == {
+        engine.cache.layers}
+    samples = sample_surface(engine.mesh, 4000)
+    assert np.median(distance_to_surface(truth, samples)) < 1.0
+    assert np.quantile(distance_to_surface(engine.mesh, sample_surface(truth, 4000)), 0.9) < 2.0
+
+
+def test_same_views_and_schedule_same_mesh_whatever_the_threads(stream):
+    """A live engine skips updates it could not keep up with; its schedule, replayed inline
+    (as `scanstation replay` does from the recording), gives the same mesh."""
+    _, stream_views = stream
+    background, figures = run_engine(stream_views)
+    assert figures[-1]["schedule"] == background.schedule_run
+    assert set(background.schedule_run) <= {3, 6, 9}
+    inline, _ = run_engine(stream_views, background=False, schedule=background.schedule_run)
+    assert inline.schedule_run == background.schedule_run
+    np.testing.assert_array_equal(background.mesh.vertices, inline.mesh.vertices)
+    np.testing.assert_array_equal(background.mesh.faces, inline.mesh.faces)
+    every, _ = run_engine(stream_views, background=False)
+    assert every.schedule_run == [3, 6, 9, 12]  # inline never lags, so it skips none
+
+
+def test_refine_remeshes_without_training_and_survives_a_reload(stream, tmp_path):
+    _, stream_views = stream
+    engine, figures = run_engine(stream_views[:6])
+    counts, before, last = dict(engine.cache.counts), engine.mesh, engine.version
+    version = refine(engine, lam=4.0)
+    assert version == last + 1 and figures[-1]["refined"] and figures[-1]["lam"] == 4.0
+    assert engine.cache.counts == counts  # nothing was fitted again
+    assert len(engine.mesh.faces) > 0 and not np.array_equal(engine.mesh.vertices,
+                                                              before.vertices)
+    engine.save(tmp_path)
+    path = refine(tmp_path, lam=4.0)
+    assert path.name == "mesh-lam4-depth2.ply"
+    again = trimesh.load(path, process=False)
+    np.testing.assert_allclose(again.vertices, engine.mesh.vertices, atol=1e-5)
+    with pytest.raises(EngineError, match="no saved reconstruction"):
+        refine(tmp_path / "nothing")
+
+
+def test_refine_before_any_mesh_is_an_error():
+    engine = IncrementalEngine(FAST, background=False)
+    with pytest.raises(EngineError, match="nothing to refine"):
+        engine.refine(lam=2.0)
+
+
+def test_alignment_recovers_a_rotation_with_reflection():
+    rng = np.random.default_rng(1)
+    uv = rng.normal(size=(50, 2))
+    turn = np.array([[0.0, 1.0], [1.0, 0.0]]) @ np.array([[0.6, -0.8], [0.8, 0.6]])
+    apply, residual = align_embedding(uv @ turn + [3.0, -2.0], uv)
+    assert residual < 1e-9
+    np.testing.assert_allclose(apply(uv @ turn + [3.0, -2.0]), uv, atol=1e-9)
+
+
+def test_warm_start_fine_tunes_the_same_network_and_refuses_strangers(stream):
+    truth, stream_views = stream
+    patch = np.concatenate(stream_views[:3])
+    patch = patch[(patch[:, 1] < -5) & (patch[:, 2] < 95)]
+    first = fit_fresh(patch[: len(patch) // 2], FAST)
+    warm = fit_warm(patch, first, FAST, tolerance=1.0)
+    assert warm is not None and warm.hidden_layers_ == first.hidden_layers_
+    assert warm.mlp_.history_[-1].get("fine_tune")
+    far = patch + [0.0, 0.0, 500.0]  # no point in common with the first fit
+    assert fit_warm(far, first, FAST, tolerance=1.0) is None

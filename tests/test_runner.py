@@ -1,0 +1,235 @@
+"""The scan runner on the simulated station: state table, documents, pause / resume / cancel,
+lost devices (the simulators' fault knobs), and output checks before the first move."""
+
+import threading
+import uuid
+
+import numpy as np
+import pytest
+
+from capture.combine import combine_depths
+from capture.plan import PlanError, ScanPlan
+from capture.recording import read_recording
+from capture.runner import TRANSITIONS, CaptureError, InvalidTransition, ScanRunner
+from sim.station import get_station
+
+CAMERA = "sim://camera?width=160&height=100&object=box"
+
+
+def plan(n_views=4, **fields):
+    """A quick plan: no reconstruction, no settling, 2 frames per view."""
+    fields = {"frames_per_view": 2, "settle_s": 0.0, "reconstruction": None,
+              "reconnect_timeout_s": 5.0, **fields}
+    return ScanPlan.turn(n_views, **fields)
+
+
+def station_name():
+    return f"test-{uuid.uuid4().hex[:8]}"
+
+
+def runner_for(tmp_path, scan_plan, table_options="", camera_options="", **kwargs):
+    name = station_name()
+    runner = ScanRunner(
+        scan_plan,
+        camera_url=f"{CAMERA}&station={name}{camera_options}",
+        turntable_url=f"sim://turntable?instant=1&station={name}{table_options}",
+        out_dir=tmp_path / "scan",
+        **kwargs,
+    )
+    runner.station_name = name
+    return runner
+
+
+def kinds(runner):
+    return [d.kind for d in runner.documents]
+
+
+def test_a_scan_emits_start_views_progress_stop_in_order(tmp_path):
+    runner = runner_for(tmp_path, plan(4))
+    seen = []
+    unsubscribe = runner.subscribe(seen.append)
+    assert runner.state == "idle"
+    assert runner.start().wait(timeout=60) == "done"
+    unsubscribe()
+    assert kinds(runner) == ["start"] + ["view", "progress"] * 4 + ["stop"]
+    assert seen == runner.documents
+    assert [d.seq for d in runner.documents] == list(range(len(runner.documents)))
+    views = [d for d in runner.documents if d.kind == "view"]
+    assert [v.angle_deg for v in views] == [0.0, 90.0, 180.0, 270.0]
+    np.testing.assert_allclose([v.measured_angle_deg for v in views], [0, 90, 180, 270],
+                               atol=0.01)
+    assert all(v.n_frames == 2 and len(v.frames) == 2 and v.valid_pixels > 0 for v in views)
+    stop = runner.documents[-1].to_dict()
+    assert stop["state"] == "done" and stop["views_done"] == 4
+    assert "frames" not in views[0].to_dict()  # raw frames stay out of the JSON documents
+    recording = read_recording(tmp_path / "scan")
+    assert recording.complete and [v.index for v in recording.views] == [0, 1, 2, 3]
+    np.testing.assert_array_equal(recording.views[2].frames[1], views[2].frames[1])
+
+
+def test_invalid_transitions_raise_and_the_table_is_closed(tmp_path):
+    runner = runner_for(tmp_path, plan(2))
+    with pytest.raises(InvalidTransition, match="cannot resume a scan that is idle"):
+        runner.resume()
+    with pytest.raises(InvalidTransition, match="cannot pause a scan that is idle"):
+        runner.pause()
+    runner.start().wait(timeout=60)
+    with pytest.raises(InvalidTransition, match="cannot start a scan that is done"):
+        runner.start()
+    with pytest.raises(InvalidTransition):
+        runner.resume()
+    states = {s for pair in TRANSITIONS for s in pair[:1]} | set(TRANSITIONS.values())
+    assert states == {"idle", "running", "paused", "stopping", "done", "failed", "interrupted"}
+    assert not any(src in ("done", "failed", "interrupted") for src, _ in TRANSITIONS)
+
+
+def test_cancel_before_start_ends_interrupted(tmp_path):
+    runner = runner_for(tmp_path, plan(2))
+    runner.cancel()
+    assert runner.state == "interrupted"
+
+
+def test_pause_resume_then_cancel_keeps_the_recorded_views(tmp_path):
+    runner = runner_for(tmp_path, plan(6))
+    paused = threading.Event()
+
+    def on_document(document):
+        if document.kind == "progress" and document.views_done == 2:
+            runner.pause()
+        if document.kind == "paused":
+            paused.set()
+
+    runner.subscribe(on_document)
+    runner.start()
+    assert paused.wait(30) and runner.wait_for_state("paused", timeout=5) == "paused"
+    assert kinds(runner)[-1] == "paused"
+    runner.resume()
+    assert runner.wait_for_state("running", timeout=5) == "running"
+    runner.cancel()
+    assert runner.wait(timeout=30) == "interrupted"
+    docs = kinds(runner)
+    assert docs.index("paused") < docs.index("resumed") < docs.index("stop") == len(docs) - 1
+    assert runner.documents[-1].reason == "cancelled by the user"
+    done = docs.count("view")
+    assert 2 <= done < 6
+    assert [v.index for v in read_recording(tmp_path / "scan").views] == list(range(done))
+
+
+def test_unplugged_turntable_pauses_reconnects_and_resumes_at_that_view(tmp_path):
+    runner = runner_for(tmp_path, plan(5), table_options="&unplug_after_moves=3")
+    assert runner.start().wait(timeout=60) == "done"
+    paused = [d for d in runner.documents if d.kind == "paused"]
+    assert len(paused) == 1 and paused[0].reason == "device"
+    assert "turntable disconnected at view 3/5" in paused[0].message
+    docs = kinds(runner)
+    assert docs.index("paused") + 1 == docs.index("resumed")
+    recording = read_recording(tmp_path / "scan")
+    assert [v.index for v in recording.views] == [0, 1, 2, 3, 4]  # each once, in order
+    np.testing.assert_allclose([v.measured_angle_deg for v in recording.views],
+                               [0, 72, 144, 216, 288], atol=0.01)
+
+
+def test_camera_disconnect_pauses_and_resumes(tmp_path):
+    runner = runner_for(tmp_path, plan(4), camera_options="&disconnect_after=5")
+    assert runner.start().wait(timeout=60) == "done"
+    (paused,) = [d for d in runner.documents if d.kind == "paused"]
+    assert paused.view_index == 2 and "camera disconnected" in paused.message
+    assert [v.index for v in read_recording(tmp_path / "scan").views] == [0, 1, 2, 3]
+
+
+def _never_reconnects(runner):
+    def refuse(device):
+        raise ConnectionError(f"{device} still unplugged")
+
+    def on_document(document):
+        if document.kind == "paused":
+            runner.station.reconnect = refuse
+
+    return on_document
+
+
+def test_a_device_that_stays_away_fails_the_scan_and_keeps_the_views(tmp_path):
+    scan_plan = plan(5, reconnect_timeout_s=0.2, on_device_lost="fail")
+    runner = runner_for(tmp_path, scan_plan, table_options="&unplug_after_moves=3")
+    runner.subscribe(_never_reconnects(runner))
+    assert runner.start().wait(timeout=60) == "failed"
+    assert "turntable did not come back within 0.2 s" in runner.reason
+    assert "2 views are recorded" in runner.reason
+    assert kinds(runner)[-2:] == ["error", "stop"]
+    assert [v.index for v in read_recording(tmp_path / "scan").views] == [0, 1]
+
+
+def test_wait_policy_stays_paused_until_resume(tmp_path):
+    scan_plan = plan(4, reconnect_timeout_s=0.1, on_device_lost="wait")
+    runner = runner_for(tmp_path, scan_plan, table_options="&unplug_after_moves=2")
+    real_reconnect = None
+
+    def on_document(document):
+        nonlocal real_reconnect
+        if document.kind == "paused":
+            real_reconnect = runner.station.reconnect
+            runner.station.reconnect = _refuse
+
+    runner.subscribe(on_document)
+    runner.start()
+    assert runner.wait_for_state("paused", timeout=30) == "paused"
+    assert runner.wait(timeout=0.5) == "paused"  # gave up retrying, still waiting
+    runner.station.reconnect = real_reconnect
+    runner.resume()
+    assert runner.wait(timeout=60) == "done"
+    assert [v.index for v in read_recording(tmp_path / "scan").views] == [0, 1, 2, 3]
+
+
+def _refuse(device):
+    raise ConnectionError(f"{device} still unplugged")
+
+
+def test_unwritable_output_fails_before_anything_moves(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    name = station_name()
+    runner = ScanRunner(plan(3), camera_url=f"{CAMERA}&station={name}",
+                        turntable_url=f"sim://turntable?instant=1&station={name}",
+                        out_dir=blocker / "scan")
+    with pytest.raises(CaptureError, match=r"output folder .*file/scan is not writable"):
+        runner.start()
+    assert runner.state == "failed"
+    assert kinds(runner) == ["error", "stop"]
+    assert get_station(name).angle_source is None  # the station was never even opened
+
+
+def test_full_disk_fails_before_the_first_move(tmp_path, monkeypatch):
+    import capture.outputs
+
+    class Usage:
+        free = 10_000_000
+
+    monkeypatch.setattr(capture.outputs.shutil, "disk_usage", lambda path: Usage)
+    runner = runner_for(tmp_path, plan(36))
+    with pytest.raises(CaptureError, match=r"not enough space in .*scan: the scan needs about"):
+        runner.start()
+    assert runner.state == "failed"
+    assert get_station(runner.station_name).angle_source.moves == 0
+
+
+def test_bad_plans_fail_with_one_line():
+    with pytest.raises(PlanError, match="frames_per_view must be a whole number >= 1"):
+        ScanPlan(frames_per_view=0).validate()
+    with pytest.raises(PlanError, match="combine must be one of median, mean, first"):
+        ScanPlan(combine="max").validate()
+    with pytest.raises(PlanError, match="views must be a whole number"):
+        ScanPlan.turn(0)
+    with pytest.raises(PlanError, match="unknown plan field"):
+        ScanPlan.from_dict({"angles": [0], "speed": 3})
+    again = ScanPlan.from_json(ScanPlan.turn(8, settle_s=0.5).to_json())
+    assert again == ScanPlan.turn(8, settle_s=0.5)
+
+
+def test_median_combination_ignores_missing_pixels():
+    frames = np.array([[[0, 10, 5, 7]], [[0, 0, 9, 1]], [[0, 30, 6, 4]]], dtype=np.uint16)
+    np.testing.assert_array_equal(combine_depths(frames, "median"), [[0, 20, 6, 4]])
+    np.testing.assert_array_equal(combine_depths(frames, "mean"), [[0, 20, 7, 4]])
+    np.testing.assert_array_equal(combine_depths(frames, "first"), frames[0])
+    rng = np.random.default_rng(0)
+    stack = rng.integers(1, 2000, (5, 40, 30)).astype(np.uint16)
+    np.testing.assert_array_equal(combine_depths(stack), np.median(stack, axis=0))

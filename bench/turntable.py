@@ -1,16 +1,19 @@
 """Turntable timing: the production GRBL driver against the simulated firmware on a pty.
 
-    OMP_NUM_THREADS=1 .venv/bin/python -m bench.turntable [--repeats 300]
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.turntable [--repeats 300] [--faults 5]
 
 Round trips (``?`` status, one G-code line's ``ok``) through the driver, against a raw pyserial
 client on the same pty (the peer: what the link itself costs); and a 360° sequence of 36 moves of
-10°, instant and in real time, against the ideal motion time of the trapezoidal profile.
+10°, instant and in real time, against the ideal motion time of the trapezoidal profile; and how
+long a fault mid-move (cable pulled, or a link gone silent with the port still open) takes to
+raise DeviceDisconnected (target: within 1 s).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import statistics
 import tempfile
 import time
@@ -61,7 +64,9 @@ def p95(values: list[float]) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=300)
+    parser.add_argument("--faults", type=int, default=5, help="repeats of each fault")
     args = parser.parse_args()
+    logging.getLogger("drivers").setLevel(logging.ERROR)  # the faults below log warnings
     rows = []
     with pty_table() as (table, transport):
         driver_status = timings(table.status, args.repeats)
@@ -97,6 +102,32 @@ def main() -> None:
         ratio = f"{total / ideal:6.3f}" if ideal else f"{'-':>6}"
         mode = "instant" if instant else "real-time"
         print(f"{mode:<10} {total:>8.3f} {ideal:>8.3f} {ratio} {1e3 * (total - ideal) / 36:>17.2f}")
+
+    print(f"\nFault mid-move to DeviceDisconnected, {args.faults} each (target <= 1 s)")
+    print(f"{'fault':<26} {'median s':>9} {'max s':>7} {'<= 1 s':>7}")
+    for fault, name in (("unplug", "cable pulled (pty closed)"),
+                        ("silent", "link silent (port open)")):
+        delays = fault_detection(fault, args.faults)
+        verdict = "yes" if max(delays) <= 1.0 else "NO"
+        print(f"{name:<26} {statistics.median(delays):>9.3f} {max(delays):>7.3f} {verdict:>7}")
+
+
+def fault_detection(fault: str, repeats: int) -> list[float]:
+    """Seconds from the fault mid-move (cable pulled / link silent) to DeviceDisconnected."""
+    out = []
+    for _ in range(repeats):
+        options = {f"{fault}_after_moves": 1, "max_rate": MAX_RATE, "acceleration": ACCEL}
+        with pty_table(instant=False, **options) as (table, transport):
+            try:
+                table.move_to(90)
+            except drivers.DeviceDisconnected:
+                noticed = time.monotonic()
+            else:
+                raise RuntimeError(f"{fault}: the move finished, no disconnect was seen")
+            firmware = transport.firmware
+            out.append(noticed - (firmware.unplugged_at if fault == "unplug"
+                                  else firmware.silent_at))
+    return out
 
 
 if __name__ == "__main__":

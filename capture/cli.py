@@ -23,6 +23,11 @@ def build_parser() -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMANDS:
         importlib.import_module(f"capture.commands.{name}").add_parser(subparsers)
+    for sub in subparsers.choices.values():  # also after the command: `scanstation scan -q`
+        sub.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                         help="no progress output")
+        sub.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                         help="debug output, tracebacks")
     return parser
 
 
@@ -60,6 +65,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.verbose:
             raise
         print(f"scanstation: error: {exc}", file=sys.stderr)
+        return 1
+    except (Exception, MemoryError) as exc:  # a bug or a library's failure: still one line
+        if args.verbose:
+            raise
+        print(f"scanstation: error: unexpected {type(exc).__name__}: {exc} (run with -v for "
+              "the traceback)", file=sys.stderr)
         return 1
 
 

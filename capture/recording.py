@@ -253,6 +253,9 @@ def read_recording(path) -> Recording:
         if meta is None or meta.get("format") != FORMAT:
             raise RecordingError(f"{segment}: not a ScanStation recording (no scan metadata)")
         first = first or meta
+        if meta.get("scan_id") != first.get("scan_id"):
+            raise RecordingError(f"{segment}: a segment of another scan (scan id "
+                                 f"{meta.get('scan_id')}, not {first.get('scan_id')})")
         complete &= footer
         documents += docs
         for doc in docs:

@@ -42,7 +42,7 @@ from .lifecycle import (  # noqa: F401  (re-exported: the runner's public names)
 from .outputs import ScanOutputs
 from .plan import ScanPlan
 from .processing import ViewProcessor
-from .recording import RecordingWriter, next_segment, read_recording
+from .recording import RecordingWriter, next_segment, read_recording, segment_paths
 from .station import Station, open_station
 
 log = logging.getLogger(__name__)
@@ -137,6 +137,10 @@ class ScanRunner(RunLifecycle):
                 camera_url = recording.station.get("camera")
                 turntable_url = recording.station.get("turntable")
             recorded = recording.views
+            self.scan_id = recording.scan_id or self.scan_id  # one scan, several segments
+        elif self.record and self.out_dir.is_dir() and segment_paths(self.out_dir):
+            raise CaptureError(f"{self.out_dir} already holds a scan recording: resume it "
+                               "(--resume) or choose another output folder")
         self.plan = (self._plan or ScanPlan()).validate()
         self.outputs = ScanOutputs(self.out_dir)
         self.outputs.check_writable()

@@ -8,7 +8,9 @@ URLs (query parameters are the constructor's options, all optional)::
 
 ``feed`` degrees/min (capped by $110), ``timeout`` seconds for an answer or the banner, ``poll``
 seconds between ``?`` while a move runs, ``margin`` seconds added to a move's computed duration,
-``steps_per_degree`` (if given) is written to $100 when it differs.
+``link_timeout`` seconds without a status report during a move before the link counts as lost
+(0.8; GRBL answers ``?`` within milliseconds even mid-move); ``steps_per_degree`` (if given)
+is written to $100 when it differs.
 
 Protocol (see /work/shared/GRBL.md): a background thread reads lines; each line sent is answered in
 order by ``ok``/``error:N`` and the bytes of lines not yet answered never exceed GRBL's RX buffer
@@ -69,6 +71,7 @@ _QUERY = {
     "timeout": ("timeout", float),
     "poll": ("poll_interval", float),
     "margin": ("margin", float),
+    "link_timeout": ("link_timeout", float),
     "steps_per_degree": ("steps_per_degree", float),
     "port": ("port", str),
 }
@@ -99,6 +102,7 @@ class GrblTurntable(Turntable):
         timeout: float = 3.0,
         poll_interval: float = 0.1,
         margin: float = 2.0,
+        link_timeout: float = 0.8,
         steps_per_degree: float | None = None,
         url: str = "",
     ):
@@ -106,11 +110,13 @@ class GrblTurntable(Turntable):
         axis = axis.upper()
         if axis not in ("X", "Y", "Z"):
             raise InvalidDeviceURL(f"axis must be X, Y or Z, got {axis!r}")
-        if min(feed, timeout, poll_interval) <= 0 or margin < 0:
-            raise InvalidDeviceURL("feed, timeout and poll must be > 0 and margin >= 0")
+        if min(feed, timeout, poll_interval, link_timeout) <= 0 or margin < 0:
+            raise InvalidDeviceURL("feed, timeout, poll and link_timeout must be > 0 and "
+                                   "margin >= 0")
         self.port, self.baudrate, self.axis = port, int(baudrate), axis
         self.feed, self.timeout = feed, timeout
         self.poll_interval, self.margin = poll_interval, margin
+        self.link_timeout = max(link_timeout, 2 * poll_interval)
         self.steps_per_degree = steps_per_degree
         self.settings: dict[int, float] = {}
         self.version: str | None = None
@@ -447,14 +453,28 @@ class GrblTurntable(Turntable):
         return status
 
     def _wait_motion(self, pending: _Pending, timeout: float, line: str) -> None:
-        """Wait for the ``ok`` of ``G4 P0``, polling ``?``; time spent in a hold does not count."""
-        deadline = last = time.monotonic()
+        """Wait for the ``ok`` of ``G4 P0``, polling ``?``; time spent in a hold does not count.
+
+        GRBL answers ``?`` within milliseconds whatever it is doing, so ``link_timeout`` s
+        without a status report means the link is gone even when the port itself stays open
+        (a USB bridge still enumerated, a network bridge): `DeviceDisconnected`."""
+        deadline = last = heard = time.monotonic()
         deadline += timeout
         next_poll = last + self.poll_interval
         with self._cond:
+            heard_seq = self._status_seq
             while not pending.done:
                 self._raise_if_failed()
                 now = time.monotonic()
+                if self._status_seq != heard_seq:
+                    heard, heard_seq = now, self._status_seq
+                elif now - heard > self.link_timeout:
+                    self._abandon(pending)
+                    self._failure = DeviceDisconnected(
+                        f"{self.port}: no status report for {self.link_timeout:.1f} s during "
+                        f"{line!r} (cable pulled or board without power?)")
+                    self._cond.notify_all()
+                    raise self._failure
                 if self._alarm_seq > pending.alarm_seq:
                     self._abandon(pending)
                     raise FirmwareAlarm(self._last_alarm, alarm_meaning(self._last_alarm), line)
@@ -473,7 +493,8 @@ class GrblTurntable(Turntable):
                     finally:
                         self._cond.acquire()
                     next_poll = now + self.poll_interval
-                self._cond.wait(max(min(deadline, next_poll) - now, 0.0))
+                wake = min(deadline, next_poll, heard + self.link_timeout + 1e-3)
+                self._cond.wait(max(wake - now, 0.0))
         if pending.error is not None:
             raise pending.error
 

@@ -28,7 +28,8 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
             f"(use one of {', '.join(POINT_FORMATS)})"
         )
     if not path.is_file():
-        raise InvalidInputError(f"{path}: no such file")
+        what = "is a directory, not a point cloud file" if path.is_dir() else "no such file"
+        raise InvalidInputError(f"{path}: {what}")
     if path.stat().st_size == 0:
         raise InvalidInputError(f"{path}: file is empty")
     try:

@@ -39,7 +39,7 @@ DEFAULT_LAM = 1.0
 #: stray points; 2 keeps F-score ≥ 0.97 on the smooth shapes while still combining two paths.
 DEFAULT_DEPTH = 2
 STATE_FORMAT = "scanstation-reconstruction/1"
-_MESH_PARAMS = ("lam", "depth", "n_corners", "boundary", "grid_spacing")
+_MESH_PARAMS = ("lam", "depth", "n_corners", "boundary", "grid_spacing", "variance")
 
 
 class SurfaceReconstructor(BaseEstimator):
@@ -48,6 +48,9 @@ class SurfaceReconstructor(BaseEstimator):
     Parameters
     ----------
     lam : spline smoothing λ; larger gives a smoother boundary.
+    variance : the variance in the spline's s = λ · m · var: "local" (the interpolants'
+        jaggedness; λ ≈ 1) or "global" (their spread about the centroid, the paper's literal
+        rule; λ ≈ 0.001–0.01). See `reconstruct.spline`.
     depth : number of boundary path depths sampled (the paper's multi-depth method).
     n_corners : corners of the boundary paths (>= 8).
     boundary : "multidepth" (the paper) or "pca" (the Yumer–Kara baseline).
@@ -76,6 +79,7 @@ class SurfaceReconstructor(BaseEstimator):
         retrain: bool = False,
         grid_spacing: float | None = None,
         random_state: int | None = 0,
+        variance: str = "local",
     ):
         self.lam = lam
         self.depth = depth
@@ -89,6 +93,7 @@ class SurfaceReconstructor(BaseEstimator):
         self.retrain = retrain
         self.grid_spacing = grid_spacing
         self.random_state = random_state
+        self.variance = variance
 
     def fit(self, points) -> SurfaceReconstructor:
         """points : (n, 3) float, any unit. Returns self with ``mesh_`` set."""
@@ -138,7 +143,7 @@ class SurfaceReconstructor(BaseEstimator):
         self._check_mesh_params()
         started = time.perf_counter()
         interpolants = self._boundary_points()
-        spline = BoundarySpline(lam=self.lam, variance="local").fit(interpolants)
+        spline = BoundarySpline(lam=self.lam, variance=self.variance).fit(interpolants)
         spacing = self.grid_spacing or default_spacing(spline.polygon_, len(self.embedding_))
         boundary_vertices = spline.sample_by_spacing(spacing)
         vertices_2d, faces = mesh_inside(spline.polygon_, boundary_vertices, spacing)
@@ -181,6 +186,10 @@ class SurfaceReconstructor(BaseEstimator):
         if self.boundary not in ("multidepth", "pca"):
             raise InvalidInputError(
                 f"boundary must be 'multidepth' or 'pca', got {self.boundary!r}"
+            )
+        if self.variance not in ("local", "global"):
+            raise InvalidInputError(
+                f"variance must be 'local' or 'global', got {self.variance!r}"
             )
         if self.grid_spacing is not None and not self.grid_spacing > 0:
             raise InvalidInputError(f"grid_spacing must be > 0, got {self.grid_spacing}")

@@ -180,6 +180,7 @@ class GrblFirmware:
         steps_per_degree: float = 250.0,
         homing: bool = False,
         unplug_after_moves: int | None = None,
+        silent_after_moves: int | None = None,
         error_on: dict[str, int] | None = None,
         delay_on: dict[str, float] | None = None,
         drop_on: tuple[str, ...] = (),
@@ -198,6 +199,7 @@ class GrblFirmware:
             self.settings[120 + i] = float(acceleration)
         self.settings[22] = int(bool(homing))
         self.unplug_after_moves = unplug_after_moves
+        self.silent_after_moves = silent_after_moves
         self.error_on = _pairs(error_on or {}, int)
         self.delay_on = _pairs(delay_on or {}, float)
         self.drop_on = tuple(normalize_line(k) for k in drop_on if normalize_line(k))
@@ -208,6 +210,7 @@ class GrblFirmware:
         self._lock = threading.RLock()
         self._changed = threading.Condition(self._lock)
         self.plugged, self.unplugged_at = True, None
+        self.silent, self.silent_at = False, None  # link up, nothing gets through (brown-out)
         self.rx_peak = self.rx_overruns = self.moves = self.responses = 0
         self._rx = bytearray()
         self._out: collections.deque[tuple[float, bytes]] = collections.deque()
@@ -226,7 +229,7 @@ class GrblFirmware:
     def receive(self, data: bytes) -> None:
         """Bytes the host wrote: real-time commands act at once, the rest fill the RX buffer."""
         with self._lock:
-            if not self.plugged:
+            if not self.plugged or self.silent:
                 return
             now = self._clock()
             self._service(now)
@@ -262,6 +265,9 @@ class GrblFirmware:
         with self._lock:
             if not self.plugged:
                 return b""
+            if self.silent:
+                self._service(self._clock())
+                return b""
             now = self._clock()
             self._service(now)
             out = bytearray()
@@ -288,10 +294,11 @@ class GrblFirmware:
             self._changed.wait(timeout if delay is None else min(timeout, delay))
 
     def plug(self) -> None:
-        """Connect the cable; anything printed or sent while unplugged is lost."""
+        """Connect the cable (or bring a silent link back); anything printed or sent while
+        unplugged is lost."""
         with self._lock:
-            if not self.plugged:
-                self.plugged = True
+            if not self.plugged or self.silent:
+                self.plugged, self.silent = True, False
                 self._rx.clear()
                 self._out.clear()
             self._changed.notify_all()
@@ -302,6 +309,15 @@ class GrblFirmware:
             if self.plugged:
                 self.plugged, self.unplugged_at = False, self._clock() if at is None else at
                 log.info("simulated GRBL cable unplugged")
+            self._changed.notify_all()
+
+    def go_silent(self, at: float | None = None) -> None:
+        """The link stays up but nothing passes either way (a board that lost power behind a
+        USB bridge that stays enumerated, a network bridge whose far side died)."""
+        with self._lock:
+            if not self.silent:
+                self.silent, self.silent_at = True, self._clock() if at is None else at
+                log.info("simulated GRBL link gone silent")
             self._changed.notify_all()
 
     def emit_garbage(self, data: bytes) -> None:
@@ -347,6 +363,8 @@ class GrblFirmware:
             self._advance(t)
             if kind == "unplug":
                 self.unplug(at=t)
+            elif kind == "silence":
+                self.go_silent(at=t)
             else:
                 self._alarm(arg, t)
 
@@ -673,6 +691,8 @@ class GrblFirmware:
         event = None
         if self.unplug_after_moves and self.moves == self.unplug_after_moves:
             event = ("unplug", None)
+        if self.silent_after_moves and self.moves == self.silent_after_moves:
+            event = ("silence", None)
         for key, code in self.alarm_on.items():
             if key in line:
                 event = ("alarm", code)
@@ -842,6 +862,7 @@ URL_OPTIONS = {
     "steps": ("steps_per_degree", float),
     "homing": ("homing", _flag),
     "unplug_after_moves": ("unplug_after_moves", int),
+    "silent_after_moves": ("silent_after_moves", int),
     "garbage_every": ("garbage_every", int),
     "seed": ("random_state", int),
     "error_on": ("error_on", lambda v: _pairs(v, int)),

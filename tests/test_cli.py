@@ -36,13 +36,21 @@ def test_reconstruct_then_remesh(tmp_path, capsys):
         (b"", "file is empty"),
         (b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n", "PLY"),
         (b"nan nan nan\n" * 30, "NaN or infinite"),
-        (b"1 2 3\n2 4 6\n3 6 9\n" * 10, None),
+        ("".join(f"{i} {2 * i} {3 * i}\n" for i in range(100)).encode(), "collinear"),
+        (bytes(range(256)) * 20, "cannot read XYZ"),  # binary, not text
+        (b"0.1 0.2 0.3\n0.5 0.1 0.9\n0.3 0.3 0.1\n", "needs at least"),  # too few points
+        (b"1 2 3\n" * 300, "needs at least"),  # one point, 300 times
+        (None, "is a directory"),
+        ("missing", "no such file"),
     ],
 )
 def test_bad_input_is_one_line_and_nonzero(tmp_path, content, message):
-    suffix = ".ply" if content.startswith(b"ply") or content == b"" else ".xyz"
+    suffix = ".ply" if content in (b"", None) or str(content).startswith("b'ply") else ".xyz"
     path = tmp_path / f"bad{suffix}"
-    path.write_bytes(content)
+    if content is None:
+        path.mkdir()
+    elif isinstance(content, bytes):
+        path.write_bytes(content)
     result = subprocess.run(
         [
             sys.executable,

@@ -8,7 +8,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from capture.daemon.app import create_app
-from capture.daemon.auth import BearerAuth, is_loopback, load_or_create_token
+from capture.daemon.auth import BearerAuth, host_of, is_loopback, load_or_create_token
 
 
 def test_the_token_is_made_once_with_mode_0600(tmp_path):
@@ -74,3 +74,24 @@ def test_with_a_required_token_the_api_answers_401_without_it(tmp_path):
 def test_on_loopback_no_token_is_needed(tmp_path):
     with TestClient(create_app(tmp_path / "state", token="t", require_token=False)) as client:
         assert client.get("/api/v1/scans").status_code == 200
+
+
+@pytest.mark.parametrize("header, host", [
+    ("127.0.0.1:8765", "127.0.0.1"), ("localhost", "localhost"), ("[::1]:8765", "::1"),
+    ("[::1]", "::1"), ("evil.example:80", "evil.example"), ("::1", "::1"),
+])
+def test_host_of_a_host_header(header, host):
+    assert host_of(header) == host
+
+
+def test_a_token_free_daemon_answers_only_to_loopback_host_names(tmp_path):
+    """DNS rebinding: a foreign page whose name resolves to 127.0.0.1 still sends its name."""
+    app = create_app(tmp_path / "state", loopback_hosts_only=True)
+    with TestClient(app, base_url="http://127.0.0.1:8765") as client:
+        assert client.get("/api/v1/scans").status_code == 200
+        for host in ("localhost:8765", "[::1]:8765", "127.0.0.1"):
+            assert client.get("/healthz", headers={"host": host}).status_code == 200, host
+        for host in ("evil.example:8765", "scanner.local", ""):
+            answer = client.post("/api/v1/scans/0123456789abcdef/cancel", headers={"host": host})
+            assert answer.status_code == 421, host
+            assert "loopback Host" in answer.json()["detail"]

@@ -3,7 +3,9 @@ scan from the form, follow it live, see the mesh in 3D, move the λ slider, take
 
 from __future__ import annotations
 
+import os
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,11 +17,24 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 BACKGROUND = (0x20, 0x24, 0x2C)  # the viewer's clear colour
 
 
+# CI sets SCANSTATION_REQUIRE_BROWSER=1: there a missing browser fails instead of skipping.
+REQUIRED = os.environ.get("SCANSTATION_REQUIRE_BROWSER") == "1"
+# Where the screenshot is kept (CI: .ci/artifacts); else the test's own tmp folder.
+ARTIFACTS = os.environ.get("SCANSTATION_ARTIFACTS")
+
+
+def _unavailable(reason: str):
+    (pytest.fail if REQUIRED else pytest.skip)(reason)
+
+
 @pytest.fixture
 def page(tmp_path):
     if CHROMIUM is None:
-        pytest.skip("no chromium on this machine (Debian: apt-get install chromium)")
-    sync_api = pytest.importorskip("playwright.sync_api", reason="pip install playwright")
+        _unavailable("no chromium on this machine (Debian: apt-get install chromium)")
+    try:
+        from playwright import sync_api
+    except ImportError:
+        _unavailable("playwright is not installed (pip install playwright)")
     with sync_api.sync_playwright() as playwright:
         browser = playwright.chromium.launch(
             executable_path=CHROMIUM, headless=True,
@@ -82,7 +97,8 @@ def test_start_watch_view_and_refine_in_a_real_browser(page, tmp_path):
         page.wait_for_function("document.getElementById('refine-status').textContent"
                                ".includes('λ 4')", timeout=60_000)
 
-        shot = tmp_path / "daemon-page.png"
+        shot = Path(ARTIFACTS or tmp_path) / "daemon-page.png"
+        shot.parent.mkdir(parents=True, exist_ok=True)
         png = page.screenshot(path=str(shot), full_page=True)
         assert shot.stat().st_size > 10_000
         viewer = viewer_pixels(png, page.locator("#canvas").bounding_box())

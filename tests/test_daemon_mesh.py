@@ -98,10 +98,44 @@ def test_reprocess_rebuilds_the_mesh_from_the_recording(finished):
     answer = client.post(f"/api/v1/scans/{scan_id}/reprocess")
     assert answer.status_code == 202
     assert answer.json()["state"] in ("processing", "done")
-    assert client.post(f"/api/v1/scans/{scan_id}/refine", json={}).status_code in (200, 409)
     done = wait_for_state(client, scan_id, "done", "failed", timeout=300)
     assert done["state"] == "done", done["reason"]
     assert done["mesh_params"]["file"] == "mesh.ply"
     assert done["files"]["recording_segments"] == 1  # re-processing records nothing
     mesh = load(client.get(f"/api/v1/scans/{scan_id}/mesh").content, "ply")
     assert len(mesh.faces) > 500
+    # the re-processed reconstruction refines (the refiner dropped the one it had cached)
+    refined = client.post(f"/api/v1/scans/{scan_id}/refine", json={"lam": 5.0})
+    assert refined.status_code == 200, refined.text
+    assert refined.json()["mesh_version"] == done["mesh_version"] + 1
+
+
+def test_no_reprocess_resume_or_delete_while_a_refine_runs(finished):
+    import threading
+
+    client, scan, _ = finished
+    jobs = client.app.app.state.jobs
+    real, started, release = jobs.refiner.refine, threading.Event(), threading.Event()
+
+    def slow_refine(*args):
+        started.set()
+        release.wait(30)
+        return real(*args)
+
+    jobs.refiner.refine = slow_refine
+    answers = []
+    worker = threading.Thread(target=lambda: answers.append(client.post(
+        f"/api/v1/scans/{scan['id']}/refine", json={"lam": 3.0})))
+    worker.start()
+    try:
+        assert started.wait(30)
+        for answer in (client.post(f"/api/v1/scans/{scan['id']}/reprocess"),
+                       client.delete(f"/api/v1/scans/{scan['id']}")):
+            assert answer.status_code == 409
+            assert "being refined" in answer.json()["detail"]
+    finally:
+        release.set()
+        worker.join(60)
+        jobs.refiner.refine = real
+    assert answers[0].status_code == 200, answers[0].text
+    assert client.post(f"/api/v1/scans/{scan['id']}/refine", json={"lam": 2.0}).status_code == 200

@@ -252,6 +252,29 @@ def test_unplug_mid_move_raises_disconnected_quickly_then_reconnect(tmp_path):
         assert 0 < table.angle <= 90
 
 
+@pytest.mark.parametrize("transport", ["url", "pty"])
+def test_a_link_gone_silent_mid_move_is_a_disconnect_not_a_long_timeout(transport):
+    """The port stays open but nothing answers (board without power behind its USB bridge):
+    the missing status reports give DeviceDisconnected after link_timeout, not the move's
+    whole timeout; reconnect then re-reads the position."""
+    url = (f"sim://turntable?station=silent-{transport}&transport={transport}&instant=0"
+           "&max_rate=3600&accel=3600&silent_after_moves=2&poll=0.02&link_timeout=0.5")
+    try:
+        with drivers.open_turntable(url) as table:
+            table.move_to(1)
+            with pytest.raises(DeviceDisconnected, match="no status report for 0.5 s"):
+                table.move_to(180)  # 3 s; the link goes silent half-way
+            assert table.firmware.silent
+            assert time.monotonic() - table.firmware.silent_at < 1.5
+            assert table.firmware.position_degrees() < 180  # noticed before the move ended
+            with pytest.raises(DeviceDisconnected):
+                table.angle  # noqa: B018
+            table.reconnect()  # brings the link back first
+            assert table.angle == table.firmware.position_degrees()
+    finally:
+        reset_stations()
+
+
 def test_socket_closed_mid_move_raises_disconnected():
     firmware = GrblFirmware(instant=False, max_rate=3600, acceleration=3600)
     server = socket.create_server(("127.0.0.1", 0))

@@ -233,3 +233,63 @@ def test_median_combination_ignores_missing_pixels():
     rng = np.random.default_rng(0)
     stack = rng.integers(1, 2000, (5, 40, 30)).astype(np.uint16)
     np.testing.assert_array_equal(combine_depths(stack), np.median(stack, axis=0))
+
+
+def test_disk_full_mid_scan_fails_clearly_and_keeps_the_views_already_recorded(
+        tmp_path, monkeypatch):
+    import errno
+
+    from capture.recording import RecordingWriter
+
+    real_sync, syncs = RecordingWriter._sync, []
+
+    def sync_until_the_disk_fills(self):
+        syncs.append(1)
+        if len(syncs) > 4:  # metadata, start document, views 0 and 1; view 2 finds no room
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_sync(self)
+
+    monkeypatch.setattr(RecordingWriter, "_sync", sync_until_the_disk_fills)
+    runner = runner_for(tmp_path, plan(6))
+    assert runner.start().wait(timeout=60) == "failed"
+    assert "recording to" in runner.reason and "No space left on device" in runner.reason
+    assert [v.index for v in read_recording(tmp_path / "scan").views] == [0, 1]
+    # view 2 never counted as done: the scan stopped there (resume captures it again)
+    assert runner.documents[-1].views_done == 2 and kinds(runner)[-2:] == ["error", "stop"]
+
+
+def test_a_second_scan_never_lands_in_the_folder_of_the_first(tmp_path):
+    assert runner_for(tmp_path, plan(2)).start().wait(timeout=60) == "done"
+    second = runner_for(tmp_path, plan(2))
+    with pytest.raises(CaptureError, match=r"already holds a scan recording: resume it"):
+        second.start()
+    assert get_station(second.station_name).angle_source is None  # nothing opened or moved
+    assert [v.index for v in read_recording(tmp_path / "scan").views] == [0, 1]
+
+
+def test_segments_of_two_scans_are_not_read_as_one(tmp_path):
+    import shutil
+
+    from capture.recording import RecordingError
+
+    for name in ("a", "b"):
+        assert runner_for(tmp_path / name, plan(2)).start().wait(timeout=60) == "done"
+    shutil.copy(tmp_path / "b" / "scan" / "recording.mcap",
+                tmp_path / "a" / "scan" / "recording-2.mcap")
+    with pytest.raises(RecordingError, match="a segment of another scan"):
+        read_recording(tmp_path / "a" / "scan")
+
+
+def test_a_resumed_scan_keeps_its_scan_id_across_segments(tmp_path):
+    runner = runner_for(tmp_path, plan(4))
+    runner.subscribe(lambda d: d.kind == "progress" and d.views_done == 2 and runner.cancel())
+    assert runner.start().wait(timeout=60) == "interrupted"
+    name = station_name()
+    resumed = ScanRunner.resume_recording(
+        tmp_path / "scan", camera_url=f"{CAMERA}&station={name}",
+        turntable_url=f"sim://turntable?instant=1&station={name}")
+    assert resumed.start().wait(timeout=60) == "done"
+    assert resumed.scan_id == runner.scan_id
+    recording = read_recording(tmp_path / "scan")
+    assert len(recording.segments) == 2 and recording.scan_id == runner.scan_id
+    assert [v.index for v in recording.views] == [0, 1, 2, 3]

@@ -12,6 +12,7 @@ def add_reconstruction_options(parser, *, defaults=True) -> None:
     from reconstruct.pipeline import DEFAULT_DEPTH, DEFAULT_LAM
 
     parser.add_argument("--lam", type=float, default=DEFAULT_LAM, help="spline smoothing λ")
+    add_variance_option(parser)
     parser.add_argument(
         "--depth", type=int, default=DEFAULT_DEPTH, help=f"boundary path depths ({DEFAULT_DEPTH})"
     )
@@ -27,11 +28,20 @@ def add_reconstruction_options(parser, *, defaults=True) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed (same seed, same mesh)")
 
 
+def add_variance_option(parser, default="local") -> None:
+    parser.add_argument(
+        "--variance", choices=("local", "global"), default=default,
+        help="variance in the spline's s = λ·m·var: 'local' (jaggedness of the boundary "
+        "samples, λ≈1; default) or 'global' (spread about the centroid, the paper's literal "
+        "rule, λ≈0.002)")
+
+
 def reconstructor_from_args(args):
     from reconstruct.pipeline import SurfaceReconstructor
 
     return SurfaceReconstructor(
         lam=args.lam,
+        variance=args.variance,
         depth=args.depth,
         embedding=args.embedding,
         n_neighbors=args.neighbors,

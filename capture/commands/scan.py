@@ -21,8 +21,8 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--views", type=int, default=36, help="views over one turn (36)")
     parser.add_argument("--object", metavar="PATH", help="mesh the simulated camera sees "
                         "(file or built-in name: vase, bust, box)")
-    parser.add_argument("-o", "--output", default="out/scan", metavar="DIR",
-                        help="output folder (default: out/scan)")
+    parser.add_argument("-o", "--output", default=None, metavar="DIR",
+                        help="output folder, new or empty (default: scans/scan-DATE-TIME)")
     parser.add_argument("--frames", type=int, default=3, help="frames per view, median-combined")
     parser.add_argument("--settle", type=float, default=0.1, help="seconds after each move")
     parser.add_argument("--calibration", metavar="FILE", help="station calibration JSON "
@@ -30,8 +30,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--plan", metavar="FILE", help="a scan plan JSON (overrides the "
                         "options above)")
     parser.add_argument("--resume", metavar="DIR", help="continue an interrupted scan in DIR")
-    parser.add_argument("--reconnect-timeout", type=float, default=30.0, metavar="S",
-                        help="seconds to wait for a lost device before failing (30)")
+    parser.add_argument("--reconnect-timeout", type=float, default=86400.0, metavar="S",
+                        help="seconds a lost device is retried while the scan is paused before "
+                        "it fails (default: a day; Ctrl-C stops, recorded views are kept)")
     parser.add_argument("--no-reconstruction", action="store_true", help="capture and record "
                         "only")
     add_engine_options(parser)
@@ -94,12 +95,20 @@ def run(args) -> int:
     if plan is not None and plan.reconstruction is not None and engine_overrides(args):
         plan = dataclasses.replace(plan, reconstruction=dataclasses.replace(
             plan.reconstruction, **engine_overrides(args)))
+    out_dir = args.resume or args.output or default_output()
     runner = ScanRunner(plan, camera_url=args.camera, turntable_url=args.turntable,
-                        object=args.object, out_dir=args.resume or args.output,
+                        object=args.object, out_dir=out_dir,
                         resume_from=args.resume, calibration=args.calibration,
                         workers=args.workers)
     runner.subscribe(progress_printer())
     return finish(runner.start())
+
+
+def default_output() -> str:
+    """A new folder per scan, so that a second scan never lands in the first one's folder."""
+    import time
+
+    return time.strftime("scans/scan-%Y%m%d-%H%M%S")
 
 
 def finish(runner) -> int:

@@ -51,7 +51,7 @@ def run(args) -> int:
     log.info("state dir %s; %s", state_dir, "bearer token required" if required
              else "loopback only: no token needed")
     app = create_app(state_dir, token=token, require_token=required,
-                     max_body_bytes=args.max_body)
+                     max_body_bytes=args.max_body, loopback_hosts_only=not required)
     level = logging.getLogger("capture").level
     logging.getLogger("uvicorn").setLevel(level)
     logging.getLogger("uvicorn.access").setLevel(level if args.access_log else logging.WARNING)

@@ -23,7 +23,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response, StreamingRes
 from fastapi.staticfiles import StaticFiles
 
 from . import downloads
-from .auth import BearerAuth
+from .auth import BearerAuth, LoopbackHostGuard
 from .errors import Conflict, InvalidRequest, OutsideScanFolder, Unavailable, UnknownScan
 from .events import SSE_KEEPALIVE, EventHub, sse_message
 from .isolation import warm_up
@@ -42,9 +42,11 @@ ScanId = Annotated[str, PathParam(pattern=SCAN_ID_PATTERN, description="16 hex d
 
 def create_app(state_dir: str | Path, *, token: str = "", require_token: bool = False,
                runner_factory=default_runner_factory, refiner: MeshRefiner | None = None,
-               max_body_bytes: int = 1 << 20, heartbeat_s: float = 15.0):
-    """The ASGI app (wrapped in the body size limit). The job store opens, and scans left
-    active by a previous process become ``interrupted``, when the app starts (lifespan)."""
+               max_body_bytes: int = 1 << 20, heartbeat_s: float = 15.0,
+               loopback_hosts_only: bool = False):
+    """The ASGI app (wrapped in the body size limit, and with ``loopback_hosts_only`` in
+    `LoopbackHostGuard`). The job store opens, and scans left active by a previous process
+    become ``interrupted``, when the app starts (lifespan)."""
     state_dir = Path(state_dir)
     auth = BearerAuth(token, require_token)
 
@@ -91,7 +93,8 @@ def create_app(state_dir: str | Path, *, token: str = "", require_token: bool = 
             swagger_css_url="/static/vendor/swagger-ui.css",
             swagger_favicon_url="/static/favicon.svg")
 
-    return BodySizeLimit(app, max_body_bytes)
+    limited = BodySizeLimit(app, max_body_bytes)
+    return LoopbackHostGuard(limited) if loopback_hosts_only else limited
 
 
 async def _jobs(request: Request) -> ScanJobs:  # async: no thread hop for a dependency

@@ -77,3 +77,35 @@ class BearerAuth:
                 detail="missing or wrong bearer token (see the token file in the state dir)",
                 headers={"WWW-Authenticate": "Bearer"},
             )
+
+
+def host_of(header: str) -> str:
+    """The host part of a ``Host`` header: ``[::1]:8765`` → ``::1``, ``a:80`` → ``a``."""
+    header = header.strip()
+    if header.startswith("["):
+        return header[1:].partition("]")[0]
+    return header.rpartition(":")[0] if header.count(":") == 1 else header
+
+
+class LoopbackHostGuard:
+    """Wrap an ASGI app: 421 unless the request's ``Host`` names a loopback address.
+
+    A token-free daemon on loopback trusts whoever can reach it; this keeps out a web page on
+    another site that rebinds its own name to 127.0.0.1 (DNS rebinding), since its requests
+    still carry that name as their Host."""
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] in ("http", "websocket"):
+            host = dict(scope["headers"]).get(b"host", b"").decode("latin-1")
+            if not is_loopback(host_of(host)):
+                body = (b'{"detail":"this daemon answers only to a loopback Host '
+                        b'(localhost, 127.0.0.1, [::1])"}')
+                await send({"type": "http.response.start", "status": 421, "headers": [
+                    (b"content-type", b"application/json"),
+                    (b"content-length", str(len(body)).encode())]})
+                await send({"type": "http.response.body", "body": body})
+                return
+        await self.app(scope, receive, send)

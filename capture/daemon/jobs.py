@@ -87,6 +87,7 @@ class ScanJobs:
         self.refiner = refiner or MeshRefiner()
         self._lock = threading.RLock()
         self._live: dict[str, _Live] = {}
+        self._refining: dict[str, int] = {}  # scan id -> refines under way
         self._held: dict[str, str] = {}  # device key -> scan id
         self._stopping = False
 
@@ -165,6 +166,8 @@ class ScanJobs:
                 _command(live.runner.resume, scan_id)
             elif record.state == "interrupted":
                 self._check_free(record.devices)
+                self._check_not_refining(scan_id)
+                self.refiner.forget(scan_id)
                 self._start(record, None, resume_from=self.scan_dir(record))
             else:
                 raise Conflict(f"scan {scan_id} is {record.state}: only a paused or an "
@@ -187,6 +190,8 @@ class ScanJobs:
 
             if not recording_segments(self.scan_dir(record)):
                 raise Conflict(f"scan {scan_id} has no recording to re-process")
+            self._check_not_refining(scan_id)
+            self.refiner.forget(scan_id)  # the replay writes a new engine state
             self._start(record, None, resume_from=None, replay=True)
         return self.get(scan_id)
 
@@ -196,6 +201,7 @@ class ScanJobs:
             record = self.get(scan_id)
             if scan_id in self._live:
                 raise Conflict(f"scan {scan_id} is {record.state}: cancel it first")
+            self._check_not_refining(scan_id)
             folder = self.scan_dir(record)
             self.store.delete(scan_id)
             self.hub.drop(scan_id)
@@ -204,21 +210,33 @@ class ScanJobs:
 
     def refine(self, scan_id: str, lam: float | None, depth: int | None) -> ScanRecord:
         """A new mesh version from the saved reconstruction with new λ / depth (no training)."""
-        record = self.get(scan_id)
-        if scan_id in self._live or record.state not in FINAL_STATES:
-            raise Conflict(f"scan {scan_id} is {record.state}: refine it once it ended")
-        current = record.mesh_params  # a value not given stays as the current mesh has it
-        lam = current.get("lam") if lam is None else lam
-        depth = current.get("depth") if depth is None else depth
-        result = self.refiner.refine(scan_id, self.scan_dir(record), lam, depth)
-        with self._lock:
-            version = self.get(scan_id).mesh_version + 1
-            params = {"lam": result.lam, "depth": result.depth, "file": result.file}
-            self.store.update(scan_id, mesh_version=version, mesh_params=params)
+        with self._lock:  # no reprocess, resume or delete may start while it refines
+            record = self.get(scan_id)
+            if scan_id in self._live or record.state not in FINAL_STATES:
+                raise Conflict(f"scan {scan_id} is {record.state}: refine it once it ended")
+            self._refining[scan_id] = self._refining.get(scan_id, 0) + 1
+        try:
+            current = record.mesh_params  # a value not given stays as the current mesh has it
+            lam = current.get("lam") if lam is None else lam
+            depth = current.get("depth") if depth is None else depth
+            result = self.refiner.refine(scan_id, self.scan_dir(record), lam, depth)
+            with self._lock:
+                version = self.get(scan_id).mesh_version + 1
+                params = {"lam": result.lam, "depth": result.depth, "file": result.file}
+                self.store.update(scan_id, mesh_version=version, mesh_params=params)
+        finally:
+            with self._lock:
+                left = self._refining.pop(scan_id) - 1
+                if left:
+                    self._refining[scan_id] = left
         self.channel(scan_id).publish({
             "kind": "refined", "time": time.time(), "version": version, **params,
             "figures": result.figures})
         return self.get(scan_id)
+
+    def _check_not_refining(self, scan_id: str) -> None:
+        if self._refining.get(scan_id):
+            raise Conflict(f"scan {scan_id} is being refined: try again when that is done")
 
     def shutdown(self, timeout: float = 30.0) -> None:
         """Stop every runner; their scans are left ``interrupted`` (resumable after restart)."""

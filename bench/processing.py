@@ -7,7 +7,7 @@ remove_statistical_outlier) in the same run, and the ratio. Target: <= 15 ms per
 Frames come from the simulated camera (`sim://camera?object=vase`) when it is installed, else
 from an embree ray cast of a vase on the plate before a wall (same optics), with depth noise.
 
-    OMP_NUM_THREADS=1 .venv/bin/python bench/processing.py --frames 50
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.processing --frames 50
 """
 
 from __future__ import annotations

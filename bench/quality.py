@@ -1,6 +1,6 @@
 """Mesh quality on synthetic shapes with ground truth: ours vs the Yumer–Kara boundary and Open3D.
 
-    python bench/quality.py [--sizes 1600 20000] [--noise 0.005 0.01] [--shapes ...]
+    python -m bench.quality [--sizes 1600 20000] [--noise 0.005 0.01] [--shapes ...]
 
 Prints accuracy, completeness, Chamfer-L1, F-score@1 % and the denoise ratio for every case,
 all in the same run; targets: denoise ≤ 0.5 and F-score ≥ 0.95 for ours on every shape, and a

@@ -1,6 +1,6 @@
 """Embedding speed and quality: our SurfaceEmbedding vs scikit-learn's Isomap, same run.
 
-    python bench/speed_embedding.py [--sizes 1600 5000 10000] [--big 20000 100000]
+    python -m bench.speed_embedding [--sizes 1600 5000 10000] [--big 20000 100000]
 
 Data: the S-curve (sim.shapes, noise σ = 0.5 % of the diagonal), whose true parameters (t, h)
 are arc-length coordinates, so a good embedding matches them up to a rigid motion. Quality is

@@ -376,6 +376,10 @@ class GrblTurntable(Turntable):
         missing = [f"${n}" for n in (100 + i, 110 + i, 120 + i) if n not in settings]
         if missing:
             raise DeviceError(f"{self.port}: '$$' did not list {', '.join(missing)}")
+        if settings.get(13):
+            raise DeviceError(f"{self.port}: GRBL reports positions in inches ($13=1); set $13=0 "
+                              "so that 1 unit = 1 degree")
+        self._command("G21")  # units of 1 (not 25.4): a startup block ($N) may have set G20
         if self.steps_per_degree and abs(settings[100 + i] - self.steps_per_degree) > 1e-6:
             log.info("%s: setting $%d=%s", self.port, 100 + i, self.steps_per_degree)
             self._command(f"${100 + i}={format_number(self.steps_per_degree)}")

@@ -8,8 +8,8 @@ from typing import Protocol
 
 
 class AngleSource(Protocol):
-    def position_degrees(self) -> float:
-        """Current table angle in degrees, as the simulated motion has it right now."""
+    def position_degrees(self, axis: str = "X") -> float:
+        """Current angle of the table's ``axis`` in degrees, as the simulated motion has it."""
 
 
 class SimStation:
@@ -18,10 +18,13 @@ class SimStation:
     def __init__(self, name: str):
         self.name = name
         self.angle_source: AngleSource | None = None
+        self.angle_axis = "X"  # the firmware axis the turntable driver turns
 
     def angle_degrees(self) -> float:
         """The turntable's true angle now (0 when no simulated turntable is attached)."""
-        return 0.0 if self.angle_source is None else float(self.angle_source.position_degrees())
+        if self.angle_source is None:
+            return 0.0
+        return float(self.angle_source.position_degrees(self.angle_axis))
 
 
 _stations: dict[str, SimStation] = {}

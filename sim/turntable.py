@@ -22,6 +22,7 @@ from drivers.errors import InvalidDeviceURL
 from drivers.grbl import GrblTurntable
 from sim.grbl_firmware import GrblFirmware, firmware_options, station_firmware
 from sim.serial_ports import URL_SCHEME, PtyTransport
+from sim.station import get_station
 
 _TRANSPORTS = ("url", "pty")
 
@@ -82,6 +83,7 @@ class SimTurntable(GrblTurntable):
 
     def _open(self) -> None:
         self.firmware = station_firmware(self.station, **self.firmware_options)
+        get_station(self.station).angle_axis = self.axis  # the camera sees the axis we turn
         if self.transport_kind == "pty":
             self._tmpdir = tempfile.mkdtemp(prefix="scanstation-grbl-")
             link = os.path.join(self._tmpdir, "ttyGRBL")

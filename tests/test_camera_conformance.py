@@ -1,7 +1,8 @@
 """What every `DepthCamera` backend must do (like scikit-learn's check_estimator).
 
 Runs on the simulated camera always (both render engines when embreex is installed); on a real
-camera when SCANSTATION_CAMERA_URL is set (e.g. ``oak://``), marked ``hardware``.
+camera, marked ``hardware``, when SCANSTATION_CAMERA_URL is set (e.g. ``oak://``) or else when
+depthai is installed and sees an OAK.
 """
 
 import importlib.util
@@ -17,7 +18,23 @@ from drivers import DepthCamera, DeviceError
 from drivers.registry import backend_class
 from sim.station import reset_stations
 
-_HARDWARE_URL = os.environ.get("SCANSTATION_CAMERA_URL")
+
+def _hardware_url() -> str | None:
+    """SCANSTATION_CAMERA_URL, else the first OAK that depthai sees (None without one)."""
+    if os.environ.get("SCANSTATION_CAMERA_URL"):
+        return os.environ["SCANSTATION_CAMERA_URL"]
+    if importlib.util.find_spec("depthai") is None:
+        return None
+    from drivers.oak import OakCamera
+
+    try:
+        found = OakCamera.discover()
+    except DeviceError:
+        return None
+    return found[0] if found else None
+
+
+_HARDWARE_URL = _hardware_url()
 _NO_EMBREE = importlib.util.find_spec("embreex") is None
 BACKENDS = [
     pytest.param("sim://camera?station=conformance&width=320&height=200", id="sim"),
@@ -30,7 +47,8 @@ BACKENDS = [
         _HARDWARE_URL,
         id="hardware",
         marks=[pytest.mark.hardware]
-        + ([] if _HARDWARE_URL else [pytest.mark.skip(reason="SCANSTATION_CAMERA_URL unset")]),
+        + ([] if _HARDWARE_URL else [pytest.mark.skip(
+            reason="no camera: no OAK seen and SCANSTATION_CAMERA_URL unset")]),
     ),
 ]
 

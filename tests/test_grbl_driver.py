@@ -424,3 +424,24 @@ def test_simgrbl_url_handler_is_registered():
     with pytest.raises(ValueError, match="bogus"):
         serial.serial_for_url("simgrbl://handler-test?bogus=1")
     reset_stations()
+
+
+def test_the_station_follows_the_axis_the_driver_turns():
+    try:
+        with drivers.open_turntable("sim://turntable?station=axis-y&axis=Y") as table:
+            table.move_to(33)
+            assert table.firmware.position_degrees("Y") == 33
+            assert table.firmware.position_degrees("X") == 0
+            assert get_station("axis-y").angle_degrees() == 33  # what the camera renders
+    finally:
+        reset_stations()
+
+
+def test_a_board_reporting_inches_is_refused_with_the_fix_named():
+    try:
+        with drivers.open_turntable("sim://turntable?station=inches") as table:
+            table.command("$13=1")
+            with pytest.raises(DeviceError, match=r"inches \(\$13=1\); set \$13=0"):
+                table.reconnect()
+    finally:
+        reset_stations()

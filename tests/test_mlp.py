@@ -159,3 +159,14 @@ def test_bad_samples_are_named():
         AdaptiveMLP().fit(uv, xyz[:50])
     with pytest.raises(NotFittedError):
         AdaptiveMLP().predict(uv)
+
+
+@pytest.mark.parametrize("n", [20, 36, 144, 1600])
+def test_the_split_is_85_10_5_disjoint_with_two_held_out_samples_at_least(n):
+    parts = AdaptiveMLP()._split(n, np.random.default_rng(0))
+    train, test, validation = parts["train"], parts["test"], parts["validation"]
+    assert len(test) >= 2 and len(validation) >= 2
+    assert len(train) + len(test) + len(validation) == n
+    assert len(set(train) | set(test) | set(validation)) == n
+    if n >= 144:
+        assert abs(len(train) / n - 0.85) < 0.01 and abs(len(test) / n - 0.10) < 0.01

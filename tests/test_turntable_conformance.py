@@ -2,6 +2,8 @@
 
 Runs on the simulated backends always; on a real turntable when SCANSTATION_TURNTABLE_URL is set
 (e.g. ``grbl:///dev/ttyUSB0``), marked ``hardware``. Hardware moves stay within ±60 degrees.
+Serial ports are not probed on their own: a GRBL connect soft-resets whatever answers, so the
+port of the turntable is named, never guessed.
 """
 
 import os
@@ -21,7 +23,7 @@ BACKENDS = [
     pytest.param("sim://turntable?station=conformance&transport=pty", id="sim-pty"),
     pytest.param(
         "sim://turntable?station=conformance&transport=pty&instant=0"
-        "&max_rate=72000&accel=36000&feed=72000",
+        "&max_rate=14400&accel=3600&feed=14400",  # 240°/s: a 60° move lasts ~0.3 s
         id="sim-realtime",
     ),
     pytest.param(
@@ -121,3 +123,65 @@ def test_simulated_station_follows_the_table(table, url):
     start = station.angle_degrees()
     table.move_by(33)
     assert station.angle_degrees() == pytest.approx(start + 33, abs=TOLERANCE)
+
+
+def _moves_in_real_time(url: str) -> bool:
+    return not url.startswith("sim://") or "instant=0" in url
+
+
+def _start_move(table, target):
+    import threading
+
+    outcome = {}
+
+    def move():
+        try:
+            table.move_to(target)
+        except DeviceError as exc:
+            outcome["error"] = exc
+
+    mover = threading.Thread(target=move)
+    mover.start()
+    return mover, outcome
+
+
+def _wait_until_moving(table, start, timeout=5.0):
+    import time
+
+    deadline = time.monotonic() + timeout
+    while abs(table.angle - start) < 0.5:
+        assert time.monotonic() < deadline, "the table never started moving"
+        time.sleep(0.005)
+
+
+def test_stop_mid_move_halts_between_start_and_target_then_moves_again(table, url):
+    if not _moves_in_real_time(url):
+        pytest.skip("instant backend: there is no 'mid-move'")
+    table.home()
+    mover, outcome = _start_move(table, 60)
+    _wait_until_moving(table, 0)
+    table.stop()
+    mover.join(10)
+    assert not mover.is_alive() and "error" in outcome  # the interrupted move says so
+    stopped = table.angle
+    assert 0 < stopped < 60
+    table.wait_until_still(timeout=5)
+    assert table.angle == pytest.approx(stopped, abs=TOLERANCE)  # it stays where it stopped
+    table.move_to(5)
+    assert table.angle == pytest.approx(5, abs=TOLERANCE)
+
+
+def test_wait_until_still_times_out_while_moving(table, url):
+    if not _moves_in_real_time(url):
+        pytest.skip("instant backend: never moving")
+    from drivers import DeviceTimeout
+
+    table.home()
+    mover, outcome = _start_move(table, 60)
+    try:
+        _wait_until_moving(table, 0)
+        with pytest.raises(DeviceTimeout):
+            table.wait_until_still(timeout=0.01)
+    finally:
+        mover.join(30)
+    assert "error" not in outcome and table.angle == pytest.approx(60, abs=TOLERANCE)

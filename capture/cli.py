@@ -9,7 +9,8 @@ import sys
 import warnings
 
 #: sub-command modules, imported lazily so `scanstation --help` stays fast.
-COMMANDS = ("demo", "scan", "replay", "calibrate", "reconstruct", "remesh", "devices", "serve")
+COMMANDS = ("demo", "scan", "replay", "calibrate", "reconstruct", "remesh", "devices", "serve",
+            "simulate")
 EXPECTED_ERRORS: tuple[type[BaseException], ...] = (OSError, ValueError)
 
 

@@ -88,3 +88,22 @@ def test_devices_lists_backends(capsys):
     out = capsys.readouterr().out
     for scheme in ("grbl://", "sim://", "oak://"):
         assert scheme in out
+
+
+def test_the_simulated_turntable_serves_another_process_on_a_pty(tmp_path):
+    import drivers
+
+    link = tmp_path / "ttyGRBL"
+    server = subprocess.Popen(
+        [sys.executable, "-m", "capture.cli", "-q", "simulate-turntable", "--instant",
+         "--link", str(link)], stdout=subprocess.PIPE, text=True)
+    try:
+        banner = server.stdout.readline()
+        assert f"open grbl://{link}" in banner
+        with drivers.open_turntable(f"grbl://{link}") as table:  # the production driver
+            table.move_to(45)
+            assert table.angle == 45
+    finally:
+        server.terminate()
+        assert server.wait(10) == 0
+    assert not link.exists()  # the link goes with the simulator

@@ -95,3 +95,12 @@ def test_a_token_free_daemon_answers_only_to_loopback_host_names(tmp_path):
             answer = client.post("/api/v1/scans/0123456789abcdef/cancel", headers={"host": host})
             assert answer.status_code == 421, host
             assert "loopback Host" in answer.json()["detail"]
+
+
+def test_a_token_file_that_is_a_link_is_refused(tmp_path):
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.write_text("someone-elses-secret\n")
+    (tmp_path / "state").mkdir()
+    (tmp_path / "state" / "token").symlink_to(elsewhere)
+    with pytest.raises(ValueError, match="not a regular file"):
+        load_or_create_token(tmp_path / "state")

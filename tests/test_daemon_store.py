@@ -7,6 +7,7 @@ import threading
 
 import pytest
 
+from capture.daemon.jobs import devices_overlap
 from capture.daemon.store import ACTIVE_STATES, JobStore, ScanRecord
 
 
@@ -99,3 +100,17 @@ def test_threads_update_one_store_safely(store):
     for thread in threads:
         thread.join()
     assert all(store.get(scan_id).progress == {"views_done": 50} for scan_id in ids)
+
+
+@pytest.mark.parametrize("a, b, overlap", [
+    ("oak://", "oak://", True),
+    ("oak://", "oak://14442C10D13EABCE00", True),  # the first OAK may be that one
+    ("oak://14442C10D13EABCE00", "oak://", True),
+    ("oak://14442C10D13EABCE00", "oak://192.168.1.44", False),
+    ("grbl:///dev/ttyUSB0", "grbl:///dev/ttyUSB1", False),
+    ("grbl:///dev/ttyUSB0", "grbl:///dev/ttyUSB0", True),
+    ("sim://camera?station=a", "sim://camera?station=b", False),
+    ("oak://", "grbl:///dev/ttyUSB0", False),
+])
+def test_device_keys_that_may_name_one_device(a, b, overlap):
+    assert devices_overlap(a, b) is overlap

@@ -4,6 +4,7 @@ re-meshing without retraining, and its saved state."""
 import numpy as np
 import pytest
 import trimesh
+from test_patches import hits_per_ray, side_rays
 
 from capture.cloud import VoxelCloud
 from capture.engine import EngineError, IncrementalEngine, refine
@@ -91,6 +92,10 @@ def test_meshes_grow_with_the_views_and_the_last_one_is_final(stream):
     samples = sample_surface(engine.mesh, 4000)
     assert np.median(distance_to_surface(truth, samples)) < 1.0
     assert np.quantile(distance_to_surface(engine.mesh, sample_surface(truth, 4000)), 0.9) < 2.0
+    # the patches, fitted by the paper's pipeline, merge into one layer: no doubled seams
+    angles = np.r_[np.arange(0.5, 360, 2.0), np.arange(0, 360, 120) - 0.1]  # + seam planes
+    hits = hits_per_ray(engine.mesh, *side_rays(np.linspace(10, 90, 5), angles))
+    assert np.mean(hits == 1) > 0.99 and hits.max() == 1, np.bincount(hits)
 
 
 def test_same_views_and_schedule_same_mesh_whatever_the_threads(stream):

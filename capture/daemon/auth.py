@@ -39,6 +39,9 @@ def load_or_create_token(state_dir: str | Path) -> tuple[str, bool]:
     try:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     except FileExistsError:
+        if path.is_symlink() or not path.is_file():
+            raise ValueError(f"{path} is not a regular file (a link?): delete it to make a new "
+                             "token") from None
         mode = stat.S_IMODE(path.stat().st_mode)
         if mode & 0o077:
             log.warning("%s was readable by others (mode %o); set to 0600", path, mode)

@@ -16,6 +16,7 @@ import logging
 import shutil
 import threading
 import time
+import urllib.parse
 import uuid
 from collections.abc import Callable
 from pathlib import Path
@@ -72,6 +73,16 @@ def _command(action: Callable[[], None], scan_id: str) -> None:
         action()
     except RuntimeError as exc:
         raise Conflict(f"scan {scan_id}: {exc}") from exc
+
+
+def devices_overlap(a: str, b: str) -> bool:
+    """Whether two device keys may name one device: equal, or one is a backend's "first
+    device" (``oak://``, no host or path) and the other a device of that backend."""
+    if a == b:
+        return True
+    pa, pb = urllib.parse.urlsplit(a), urllib.parse.urlsplit(b)
+    first = lambda p: not (p.netloc or p.path.strip("/") or p.query)  # noqa: E731
+    return pa.scheme == pb.scheme and (first(pa) or first(pb))
 
 
 class ScanJobs:
@@ -255,9 +266,10 @@ class ScanJobs:
     # -- internals -----------------------------------------------------------------------------
     def _check_free(self, devices: list[str]) -> None:
         for key in devices:
-            holder = self._held.get(key)
-            if holder is not None:
-                raise Conflict(f"device {key} is busy with scan {holder}")
+            for held, holder in self._held.items():
+                if devices_overlap(key, held):
+                    raise Conflict(f"device {key} is busy with scan {holder}"
+                                   + ("" if key == held else f" (as {held})"))
 
     def _require_live(self, scan_id: str, action: str) -> _Live:
         live = self._live.get(scan_id)

@@ -37,7 +37,8 @@ class ReconstructionParams:
     n_sectors, overlap_deg, cap_fraction, cap_overlap_mm : closed-object patches
         (`capture.patches.PatchReconstructor`).
     polish_epochs, polish_patience, polish_train_points : the final fine-tuning of every patch
-        after the last view (longer, on up to this many samples: measured to beat a fresh fit).
+        after the last view (longer, on up to this many samples: measured to beat a fresh fit;
+        patience 12 rather than 20: a 36-view scan 59 → 53 s, denoise 0.49 → 0.54, bench/scan.py).
     update_every : update the mesh after this many new views (0: only at the end).
     min_growth : a patch is first fitted once its coverage grew less than this fraction between
         two updates, and refitted when it grew by this fraction since its fit.
@@ -53,7 +54,7 @@ class ReconstructionParams:
     final_epochs: int = 150
     max_train_points: int = 1000
     polish_epochs: int = 300
-    polish_patience: int = 20
+    polish_patience: int = 12
     polish_train_points: int = 4000
     voxel_mm: float = 2.0
     min_views: int = 2

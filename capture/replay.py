@@ -33,13 +33,14 @@ class _Cursor:
         self.frame = 0
 
 
-class ReplayTurntable(Turntable):
-    """A turntable that steps through the recorded views."""
+class _ReplayDevice:
+    """What both replay devices share: built on a cursor, never from a URL, nothing to open."""
 
     schemes = ("replay",)
+    kind = ""
 
     def __init__(self, cursor: _Cursor):
-        super().__init__("replay://turntable")
+        super().__init__(f"replay://{self.kind}")
         self._cursor = cursor
 
     @classmethod
@@ -51,6 +52,12 @@ class ReplayTurntable(Turntable):
 
     def _close(self) -> None:
         pass
+
+
+class ReplayTurntable(_ReplayDevice, Turntable):
+    """A turntable that steps through the recorded views."""
+
+    kind = "turntable"
 
     def home(self) -> None:
         self._cursor.view, self._cursor.frame = -1, 0
@@ -78,24 +85,10 @@ class ReplayTurntable(Turntable):
         pass
 
 
-class ReplayCamera(DepthCamera):
+class ReplayCamera(_ReplayDevice, DepthCamera):
     """A camera that returns the current recorded view's frames, in order."""
 
-    schemes = ("replay",)
-
-    def __init__(self, cursor: _Cursor):
-        super().__init__("replay://camera")
-        self._cursor = cursor
-
-    @classmethod
-    def from_url(cls, url: str, **options):
-        raise DeviceError("replay devices come from a recording (capture.replay.replay_station)")
-
-    def _open(self) -> None:
-        pass
-
-    def _close(self) -> None:
-        pass
+    kind = "camera"
 
     @property
     def intrinsics(self) -> np.ndarray:

@@ -107,3 +107,17 @@ def test_the_simulated_turntable_serves_another_process_on_a_pty(tmp_path):
         server.terminate()
         assert server.wait(10) == 0
     assert not link.exists()  # the link goes with the simulator
+
+
+def test_a_cloud_in_two_pieces_reconstructs_the_largest_with_a_warning(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    big = np.column_stack([rng.uniform(-1, 1, (600, 2)), rng.normal(0, 0.01, 600)])
+    small = np.column_stack([rng.uniform(3, 4, (150, 2)), rng.normal(0, 0.01, 150)])
+    np.savetxt(tmp_path / "two.xyz", np.vstack([big, small]))
+    out = tmp_path / "m.ply"
+    args = ["reconstruct", str(tmp_path / "two.xyz"), "-o", str(out), "--max-layers", "1",
+            "--max-neurons", "4"]
+    assert main(args) == 0
+    assert "2 pieces; reconstructing the largest (600" in capsys.readouterr().err
+    vertices = trimesh.load(out, force="mesh").vertices
+    assert vertices[:, :2].max() < 1.2  # only the big piece was meshed

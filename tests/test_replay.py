@@ -91,3 +91,19 @@ def test_an_interrupted_scan_resumes_into_a_new_segment(tmp_path):
     recording = read_recording(out)
     assert [v.index for v in recording.views] == list(range(8))
     assert recording.complete
+
+
+def test_replay_of_a_resumed_scan_gives_its_final_mesh(tmp_path):
+    out = tmp_path / "scan"
+    first = live_scan(out)
+    first.subscribe(lambda d: d.kind == "progress" and d.views_done == 4 and first.cancel())
+    assert first.start().wait(timeout=300) == "interrupted"
+    resumed = ScanRunner.resume_recording(out)
+    assert resumed.start().wait(timeout=300) == "done", resumed.reason
+    assert len(segment_paths(out)) == 2
+    replay = replay_runner(out, tmp_path / "replayed")
+    assert replay.start().wait(timeout=300) == "done", replay.reason
+    live_mesh = trimesh.load(out / "mesh.ply", process=False)
+    replayed = trimesh.load(tmp_path / "replayed" / "mesh.ply", process=False)
+    np.testing.assert_array_equal(replayed.vertices, live_mesh.vertices)
+    np.testing.assert_array_equal(replayed.faces, live_mesh.faces)

@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"scanstation: error: {exc}", file=sys.stderr)
         return 1
-    except (Exception, MemoryError) as exc:  # a bug or a library's failure: still one line
+    except Exception as exc:  # a bug, a library's failure, MemoryError: still one line
         if args.verbose:
             raise
         print(f"scanstation: error: unexpected {type(exc).__name__}: {exc} (run with -v for "

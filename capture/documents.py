@@ -167,3 +167,16 @@ def from_dict(data: dict) -> Document:
     if cls is ViewDocument:
         values["timestamps"] = tuple(values.get("timestamps", ()))
     return cls(**values)
+
+
+def subscribe(lock, subscribers: list, callback):
+    """Append ``callback`` to ``subscribers`` under ``lock``; returns its unsubscribe()."""
+    with lock:
+        subscribers.append(callback)
+
+    def unsubscribe():
+        with lock:
+            if callback in subscribers:
+                subscribers.remove(callback)
+
+    return unsubscribe

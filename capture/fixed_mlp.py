@@ -13,9 +13,7 @@ Stopgap: this reaches into `AdaptiveMLP`'s private steps. The public hook it sta
 
 from __future__ import annotations
 
-import numpy as np
-
-from reconstruct.mlp import AdaptiveMLP, _build, _one_torch_thread, _torch
+from reconstruct.mlp import AdaptiveMLP, _build, _one_torch_thread
 from reconstruct.surface_map import OnnxSurfaceMap
 
 
@@ -37,19 +35,14 @@ class FixedArchitectureMLP(AdaptiveMLP):
 
     def fit(self, uv, xyz) -> FixedArchitectureMLP:
         """uv : (n, 2) embedded points; xyz : (n, 3) their 3D positions. Returns self."""
-        torch = _torch()
         self._check_params()
-        uv, xyz = self._check_data(uv, xyz)
-        rng = np.random.default_rng(self.random_state)
-        generator = torch.Generator().manual_seed(int(rng.integers(2**31)))
-        self._set_normalisation(uv, xyz)
-        x, y = self._normalise(uv, xyz)
-        splits = self._split(len(x), rng)
-        tensors = {k: (torch.from_numpy(x[i]), torch.from_numpy(y[i])) for k, i in splits.items()}
+        rng, generator = self._random()
+        tensors = self._samples(uv, xyz, rng, new_normalisation=True)
+        n_in, n_out = (t.shape[1] for t in tensors["train"])
         self.history_ = []
         self.hidden_layers_ = tuple(int(w) for w in self.hidden_layers)
         with _one_torch_thread():
-            net = _build(self.hidden_layers_, self.activation, x.shape[1], y.shape[1], generator)
+            net = _build(self.hidden_layers_, self.activation, n_in, n_out, generator)
             net = self._train_final(net, tensors, generator)
         self.torch_model_ = net.eval()
         self._store_errors(tensors)

@@ -14,7 +14,7 @@ import logging
 import threading
 import time
 
-from .documents import Document, PausedDocument, ResumedDocument
+from .documents import Document, PausedDocument, ResumedDocument, subscribe
 from .outputs import OutputError
 
 log = logging.getLogger("capture.runner")
@@ -85,15 +85,7 @@ class RunLifecycle:
     # -- subscribers and documents -------------------------------------------------------------
     def subscribe(self, callback):
         """Call ``callback(document)`` for every later document; returns an unsubscribe()."""
-        with self._lock:
-            self._subscribers.append(callback)
-
-        def unsubscribe():
-            with self._lock:
-                if callback in self._subscribers:
-                    self._subscribers.remove(callback)
-
-        return unsubscribe
+        return subscribe(self._lock, self._subscribers, callback)
 
     def _emit(self, cls, **fields) -> Document:
         with self._lock:

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from reconstruct.io import write_bytes_atomic
+
 from .plan import ScanPlan
 from .quality import surface_quality, visible_samples
 from .station import true_surface
@@ -33,20 +35,6 @@ EXTRA_BYTES = 64 << 20
 
 class OutputError(OSError):
     """The output folder cannot take the scan (the message names the folder and the cause)."""
-
-
-def _atomic_write(path: Path, data: bytes) -> Path:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 class ScanOutputs:
@@ -80,7 +68,7 @@ class ScanOutputs:
         return needed
 
     def write_mesh(self, mesh, name: str = "mesh.ply") -> Path:
-        path = _atomic_write(self.directory / name, mesh.export(file_type="ply"))
+        path = write_bytes_atomic(self.directory / name, mesh.export(file_type="ply"))
         self.files["mesh"] = str(path)
         return path
 
@@ -122,7 +110,7 @@ class ScanOutputs:
                 report["segments"] = [str(p) for p in segments]
         self.files["report"] = str(self.directory / "scan.json")
         report["files"] = dict(self.files)
-        _atomic_write(self.directory / "scan.json", json.dumps(report, indent=1).encode())
+        write_bytes_atomic(self.directory / "scan.json", json.dumps(report, indent=1).encode())
         return dict(self.files)
 
     def quality(self, runner) -> dict | None:

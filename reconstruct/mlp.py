@@ -199,18 +199,11 @@ class AdaptiveMLP(BaseEstimator):
     # -- fitting -------------------------------------------------------------------------------
     def fit(self, uv, xyz) -> AdaptiveMLP:
         """uv : (n, 2) embedded points; xyz : (n, 3) their 3D positions. Returns self."""
-        torch = _torch()
         self._check_params()
-        uv, xyz = self._check_data(uv, xyz)
         started = time.perf_counter()
-        rng = np.random.default_rng(self.random_state)
-        generator = torch.Generator().manual_seed(int(rng.integers(2**31)))
-        self._set_normalisation(uv, xyz)
-        x, y = self._normalise(uv, xyz)
-        splits = self._split(len(x), rng)
-        tensors = {k: (torch.from_numpy(x[i]), torch.from_numpy(y[i])) for k, i in splits.items()}
-
-        n_in, n_out = x.shape[1], y.shape[1]
+        rng, generator = self._random()
+        tensors = self._samples(uv, xyz, rng, new_normalisation=True)
+        n_in, n_out = (t.shape[1] for t in tensors["train"])
         self.history_ = []
         best = None  # (weighted, layers, net)
         previous_layer_net = None
@@ -265,14 +258,10 @@ class AdaptiveMLP(BaseEstimator):
 
     def fine_tune(self, uv, xyz) -> AdaptiveMLP:
         """Continue training the chosen network on new samples (warm start, no search)."""
-        torch = _torch()
         if not hasattr(self, "torch_model_"):
             raise NotFittedError("fit() the AdaptiveMLP before fine_tune()")
-        uv, xyz = self._check_data(uv, xyz)
-        rng = np.random.default_rng(self.random_state)
-        x, y = self._normalise(uv, xyz)
-        splits = self._split(len(x), rng)
-        tensors = {k: (torch.from_numpy(x[i]), torch.from_numpy(y[i])) for k, i in splits.items()}
+        tensors = self._samples(uv, xyz, np.random.default_rng(self.random_state),
+                                new_normalisation=False)
         with _one_torch_thread():
             record = self._train(self.torch_model_.train(), tensors, self.final_epochs)
         record["layers"] = self.hidden_layers_
@@ -298,6 +287,22 @@ class AdaptiveMLP(BaseEstimator):
         return y * self.y_scale_ + self.y_mean_
 
     # -- internals -----------------------------------------------------------------------------
+    def _random(self):
+        """(numpy Generator, torch Generator) seeded from ``random_state``, in a fixed order."""
+        rng = np.random.default_rng(self.random_state)
+        return rng, _torch().Generator().manual_seed(int(rng.integers(2**31)))
+
+    def _samples(self, uv, xyz, rng, new_normalisation: bool) -> dict:
+        """Checked, normalised samples split 85/10/5: {"train"|"test"|"validation"|"all":
+        (x (k, 2), y (k, 3)) tensors}. ``new_normalisation`` fits the scales to these samples."""
+        torch = _torch()
+        uv, xyz = self._check_data(uv, xyz)
+        if new_normalisation:
+            self._set_normalisation(uv, xyz)
+        x, y = self._normalise(uv, xyz)
+        splits = self._split(len(x), rng)
+        return {k: (torch.from_numpy(x[i]), torch.from_numpy(y[i])) for k, i in splits.items()}
+
     def _set_normalisation(self, uv, xyz) -> None:
         self.x_mean_, self.y_mean_ = uv.mean(0), xyz.mean(0)
         self.x_scale_ = np.full(uv.shape[1], max(uv.std(0).max(), 1e-12))  # isotropic: keep shape

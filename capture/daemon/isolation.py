@@ -26,6 +26,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from ..documents import subscribe
 from .tracking import as_dict, write_live_mesh
 
 log = logging.getLogger(__name__)
@@ -106,15 +107,7 @@ class ProcessRunner:
         return None if self._process is None else self._process.pid
 
     def subscribe(self, callback: Callable[[dict], None]) -> Callable[[], None]:
-        with self._lock:
-            self._subscribers.append(callback)
-
-        def unsubscribe():
-            with self._lock:
-                if callback in self._subscribers:
-                    self._subscribers.remove(callback)
-
-        return unsubscribe
+        return subscribe(self._lock, self._subscribers, callback)
 
     def start(self) -> ProcessRunner:
         """Start the child and return once its runner started; RuntimeError (one line) when the

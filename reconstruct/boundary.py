@@ -10,12 +10,15 @@ wedge: every point whose direction from the centroid lies between the two corner
 rectangle's intent for any orientation, and the sector geometry the corners come from.
 
 Path weights: an edge i → j costs ``c1 * d_s + c2 * d_c`` with ``d_s = |p_i - p_j|`` and
-``d_c = r_env(θ_j) - |p_j - c|`` ≥ 0, the inward distance of the next point below the outer
-envelope of the remaining points along its ray from the centroid c (``r_env`` is the largest
-radius in the point's fine angular sector, about √m sectors). The paper's plain distance to the
-centroid would reward cutting through the interior; measured down from the envelope it
-penalises closeness to the centroid instead, is 0 on the outside, keeps weights ≥ 0 for
-Dijkstra and is in the units of ``d_s``, so ``c1, c2`` do not depend on the embedding's scale.
+``d_c`` ≥ 0 the depth of the next point below the outer envelope of the remaining points: the
+polygon joining, in angular order about the centroid c, the outermost point of each fine
+sector (about √m sectors), and d_c the point's perpendicular distance below the edge of that
+polygon above it. The paper's plain distance to the centroid would reward cutting through the
+interior; measured down from the envelope it penalises closeness to the centroid instead, is 0
+on the outside, keeps weights ≥ 0 for Dijkstra and is in the units of ``d_s``, so ``c1, c2`` do
+not depend on the embedding's scale. Measured across the envelope's edges rather than along the
+rays (each sector's largest radius minus the point's), a point on a side that the rays meet at
+a grazing angle, as on the long sides of an elongated region, is not taken for an inner one.
 
 Robustness and speed: outliers (sparse neighbourhoods) are never corners or path points; only
 an outer band of points enters the graphs, and each wedge is tried first on a thin outer band
@@ -57,7 +60,7 @@ class MultiDepthBoundary(BaseEstimator):
         cloud's median k-th neighbour distance; outliers are never corners or path points, so a
         lone far point cannot drag the boundary out. None keeps every point.
     band_factor : only points within ``band_factor * (depth + 1)`` point spacings below the
-        envelope enter the graphs (fast at 100k points); None uses every inlier.
+        envelope polygon enter the graphs (fast at 100k points); None uses every inlier.
 
     Fitted: ``points_ (k, 2)`` interpolants ordered along the outermost loop (counter-clockwise),
     ``indices_ (k,)`` into the input, ``depth_paths_`` list of (k_d,) index loops per depth,
@@ -100,7 +103,8 @@ class MultiDepthBoundary(BaseEstimator):
         candidates = ~outliers
         if self.band_factor is not None:
             width = self.band_factor * (self.depth + 1) * spacing
-            candidates &= geometry.r >= geometry.band_floor(candidates) - width
+            every = np.arange(len(uv))
+            candidates &= geometry.depth_below(every, candidates) <= width
 
         remaining = candidates.copy()
         paths, corner_ids = [], []
@@ -112,8 +116,8 @@ class MultiDepthBoundary(BaseEstimator):
             corners = _sector_corners(geometry.theta[ids], geometry.r[ids], self.n_corners)
             if len(corners) < 3:
                 break
-            inward = geometry.inward_distance(ids)
-            outer = geometry.r[ids] >= geometry.band_floor(remaining)[ids] - _OUTER * spacing
+            inward = geometry.depth_below(ids, remaining)
+            outer = inward <= _OUTER * spacing
             loop = _trace_loop(
                 uv[ids], geometry.theta[ids], inward, outer, corners, self.c1, self.c2, k
             )
@@ -186,12 +190,12 @@ class PCABoundary(BaseEstimator):
             raise DegenerateCloudError("PCA corners coincide: the points have no 2D spread")
         corners = extremes[np.argsort(geometry.theta[extremes], kind="stable")]
         # The outer band of MultiDepthBoundary's default for one depth (3 × (1 + 1) spacings).
-        band = geometry.r >= geometry.band_floor(everything) - 6.0 * geometry.spacing
+        band = geometry.depth_below(np.arange(len(uv)), everything) <= 6.0 * geometry.spacing
         band[corners] = True
         ids = np.flatnonzero(band)
         local = np.searchsorted(ids, corners)
-        inward = geometry.inward_distance(ids)
-        outer = geometry.r[ids] >= geometry.band_floor(band)[ids] - _OUTER * geometry.spacing
+        inward = geometry.depth_below(ids, band)
+        outer = inward <= _OUTER * geometry.spacing
         theta = geometry.theta[ids]
         loop = _trace_loop(uv[ids], theta, inward, outer, local, 1.0, self.c2, self.n_neighbors)
         loop = ids[loop]
@@ -229,6 +233,7 @@ class _Polar:
     def __init__(self, uv: np.ndarray, inliers: np.ndarray):
         self.centroid = uv[inliers].mean(axis=0)
         offset = uv - self.centroid
+        self.offset = offset
         self.r = np.hypot(offset[:, 0], offset[:, 1])
         self.theta = np.arctan2(offset[:, 1], offset[:, 0])
         n_in = int(inliers.sum())
@@ -246,17 +251,35 @@ class _Polar:
         np.maximum.at(out, self.sector[ids], self.r[ids])
         return out
 
-    def band_floor(self, mask: np.ndarray) -> np.ndarray:
-        """(m,) envelope radius of each point's sector, taken as the least of it and its two
-        neighbours so that a steep outline (or one spike) does not cut the band."""
-        env = self.envelope(np.flatnonzero(mask))
-        low = np.minimum(env, np.minimum(np.roll(env, 1), np.roll(env, -1)))
-        return low[self.sector]
+    def depth_below(self, ids: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """(len(ids),) perpendicular distance of each point of ``ids`` below the envelope polygon
+        of the ``mask`` points, >= 0 (0 on or outside it).
 
-    def inward_distance(self, ids: np.ndarray) -> np.ndarray:
-        """(len(ids),) distance of each point below the envelope of ``ids`` along its ray, ≥ 0."""
-        env = self.envelope(ids)
-        return np.maximum(env[self.sector[ids]] - self.r[ids], 0.0)
+        The envelope polygon joins, in angular order, the outermost ``mask`` point of each
+        non-empty fine sector. A point is measured against the polygon edge whose two ends'
+        angles bracket its own, perpendicular to that edge: a point on a straight outline that
+        the rays from the centroid meet at a grazing angle (the long sides of an elongated
+        region) is at depth ~0, where its radial distance below the sector's outermost point
+        would be many spacings.
+        """
+        members = np.flatnonzero(mask)
+        order = np.lexsort((-self.r[members], self.sector[members]))
+        _, first = np.unique(self.sector[members][order], return_index=True)
+        vertex = members[order[first]]  # outermost point per non-empty sector, by angle
+        if len(vertex) < 3:
+            return np.zeros(len(ids))
+        angle = self.theta[vertex]
+        vertex = vertex[np.argsort(angle, kind="stable")]
+        angle = np.sort(angle)
+        after = np.searchsorted(angle, self.theta[ids], side="right") % len(vertex)
+        a = self.offset[vertex[after - 1]]
+        b = self.offset[vertex[after]]
+        edge = b - a
+        rel = self.offset[ids] - a
+        cross = edge[:, 0] * rel[:, 1] - edge[:, 1] * rel[:, 0]
+        depth = cross / np.maximum(np.hypot(edge[:, 0], edge[:, 1]), 1e-300)
+        # counter-clockwise polygon: the inside is to the left of each edge (cross > 0)
+        return np.maximum(depth, 0.0)
 
 
 def _sector_corners(theta: np.ndarray, r: np.ndarray, n_corners: int) -> np.ndarray:

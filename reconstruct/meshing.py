@@ -26,6 +26,16 @@ def default_spacing(polygon: np.ndarray, n_points: int) -> float:
     return float(np.sqrt(area / max(int(n_points), 1)))
 
 
+def sample_ring(polygon: np.ndarray, spacing: float) -> np.ndarray:
+    """(q, 2) points along the closed ``polygon (p, 2)`` about ``spacing`` apart in arc length,
+    q >= 3, the first at the polygon's first vertex."""
+    steps = np.hypot(*np.diff(polygon, axis=0).T)
+    arc = np.concatenate([[0.0], np.cumsum(steps)])
+    q = max(3, int(round(arc[-1] / spacing)))
+    at = np.linspace(0.0, arc[-1], q, endpoint=False)
+    return np.column_stack([np.interp(at, arc, polygon[:, 0]), np.interp(at, arc, polygon[:, 1])])
+
+
 def mesh_inside(
     polygon: np.ndarray, boundary_points: np.ndarray, spacing: float
 ) -> tuple[np.ndarray, np.ndarray]:

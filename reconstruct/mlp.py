@@ -8,13 +8,14 @@ optionally retrained on all samples. Hidden activation is selectable, the output
 
 Training is full-batch L-BFGS in torch (tiny nets are overhead-bound, so few large steps beat many
 small ones). The chosen configuration is then trained to convergence from its searched weights
-and from a fresh start, keeping the better. The chosen net is exported to ONNX with its
-normalisation inside; `predict` and meshing run on onnxruntime.
+and from a fresh start, and their mean is kept (one MLP with the two side by side). That net
+is exported to ONNX with its normalisation inside; `predict` and meshing run on onnxruntime.
 """
 
 from __future__ import annotations
 
 import contextlib
+import copy
 import io
 import logging
 import time
@@ -127,10 +128,14 @@ class AdaptiveMLP(BaseEstimator):
         the more robust: split neurons can stall in a saddle); "net2net" warm-starts each wider
         net from the narrower one (function-preserving split), a little cheaper.
     max_train_points : training samples are capped (randomly) for speed on large clouds.
+    max_search_points : the search trains each configuration on a random subset of at most this
+        many of them (enough to rank configurations; the chosen one then trains on all): at
+        20,000 points it cuts the search by about a third.
     random_state : seed; the same seed gives the same network.
 
     Fitted: ``hidden_layers_`` (tuple of widths), ``history_`` (one dict per configuration),
-    ``surface_map_`` (`OnnxSurfaceMap`), ``torch_model_`` (the chosen net, normalised units),
+    ``surface_map_`` (`OnnxSurfaceMap`), ``torch_model_`` (the chosen net, normalised
+    units: the mean of two final fits, as one MLP twice as wide; or the retrained net),
     ``train_error_``/``test_error_``/``validation_error_`` (MSE in input units).
     """
 
@@ -149,6 +154,7 @@ class AdaptiveMLP(BaseEstimator):
         retrain: bool = False,
         growth: str = "fresh",
         max_train_points: int = 6000,
+        max_search_points: int = 4000,
         random_state: int | None = 0,
     ):
         self.max_layers = max_layers
@@ -164,6 +170,7 @@ class AdaptiveMLP(BaseEstimator):
         self.retrain = retrain
         self.growth = growth
         self.max_train_points = max_train_points
+        self.max_search_points = max_search_points
         self.random_state = random_state
 
     # -- checks --------------------------------------------------------------------------------
@@ -176,7 +183,7 @@ class AdaptiveMLP(BaseEstimator):
             raise InvalidInputError(f"growth must be 'fresh' or 'net2net', got {self.growth!r}")
         for name in ("max_layers", "max_neurons", "max_epochs", "final_epochs", "steps_per_epoch",
                      "patience",
-                     "neuron_patience", "max_train_points"):
+                     "neuron_patience", "max_train_points", "max_search_points"):
             value = getattr(self, name)
             if int(value) != value or value < 1:
                 raise InvalidInputError(f"{name} must be a whole number >= 1, got {value}")
@@ -204,6 +211,7 @@ class AdaptiveMLP(BaseEstimator):
         rng, generator = self._random()
         tensors = self._samples(uv, xyz, rng, new_normalisation=True)
         n_in, n_out = (t.shape[1] for t in tensors["train"])
+        search = dict(tensors, train=tensors["search"])
         self.history_ = []
         best = None  # (weighted, layers, net)
         previous_layer_net = None
@@ -221,7 +229,7 @@ class AdaptiveMLP(BaseEstimator):
                                else _build(layers, self.activation, n_in, n_out, generator))
                     else:
                         net = _widen(net, layers, self.activation, n_in, n_out, generator)
-                    record = self._train(net, tensors)
+                    record = self._train(net, search)
                     record["layers"] = layers
                     self.history_.append(record)
                     log.info(
@@ -323,6 +331,10 @@ class AdaptiveMLP(BaseEstimator):
         held_out = max(2, self.max_train_points // 4)
         caps = {"train": self.max_train_points, "test": held_out, "validation": held_out}
         parts = {k: np.sort(v[: caps[k]]) for k, v in parts.items()}
+        searched = parts["train"]
+        if len(searched) > self.max_search_points:
+            searched = np.sort(rng.choice(searched, self.max_search_points, replace=False))
+        parts["search"] = searched
         parts["all"] = np.sort(np.concatenate([parts["train"], parts["test"], parts["validation"]]))
         return parts
 
@@ -367,24 +379,27 @@ class AdaptiveMLP(BaseEstimator):
         }
 
     def _train_final(self, net, tensors, generator):
-        """Train the chosen configuration to convergence, both from its warm-started weights and
-        from a fresh initialisation (growth can settle in a poorer basin); keep the better by
-        the weighted train–test error, the search's own criterion. The search is over, so the
-        held-out test and validation samples together decide the early stop (a steadier signal
-        than the 5 % validation split alone)."""
+        """Train the chosen configuration to convergence twice, from its searched weights and
+        from a fresh initialisation, and return their mean. Its squared error against the true
+        surface is at most the two fits' average (Jensen) and usually below the better one,
+        as their independent errors partly cancel. On the three hardest 1,600-point cases of
+        bench/quality.py, meshed inside their true outline, it gave a 5–18 % lower Chamfer-L1
+        than keeping the fit with the lower held-out error, which mostly measures the noise and
+        so often keeps the worse one. The search
+        is over, so the held-out test and validation samples together decide the early stop
+        (a steadier signal than the 5 % validation split alone)."""
         torch = _torch()
-        held_out = tuple(torch.cat(pair) for pair in zip(tensors["test"], tensors["validation"],
-                                                         strict=True))
+        held_out = tuple(
+            torch.cat(pair) for pair in zip(tensors["test"], tensors["validation"], strict=True)
+        )
         final = dict(tensors, validation=held_out)
         n_in, n_out = _linears(net)[0].in_features, _linears(net)[-1].out_features
         fresh = _build(self.hidden_layers_, self.activation, n_in, n_out, generator)
-        candidates = []
         for start, label in ((net, "warm"), (fresh, "fresh")):
             record = self._train(start, final, self.final_epochs)
             record.update(layers=self.hidden_layers_, final=label)
             self.history_.append(record)
-            candidates.append((record["weighted_mse"], label == "fresh", start))
-        return min(candidates, key=lambda c: c[:2])[2]
+        return _mean_of(net, fresh)
 
     def _retrain(self, net, tensors, generator):
         """A fresh net of the chosen configuration trained on every sample (the paper's option)."""
@@ -433,6 +448,35 @@ class AdaptiveMLP(BaseEstimator):
         return buffer.getvalue()
 
 
+def _mean_of(first, second):
+    """One MLP computing the mean of two of the same architecture: their hidden layers side by
+    side (block-diagonal weights), the output layer halved. A plain ``Sequential``, so it
+    trains, pickles and exports like any other net."""
+    torch = _torch()
+    modules = []
+    pairs = list(zip(first, second, strict=True))
+    linear_ids = [i for i, (m, _) in enumerate(pairs) if isinstance(m, torch.nn.Linear)]
+    with torch.no_grad():
+        for i, (a, b) in enumerate(pairs):
+            if not isinstance(a, torch.nn.Linear):
+                modules.append(copy.deepcopy(a))
+                continue
+            if i == linear_ids[0]:
+                weight = torch.cat([a.weight, b.weight])
+                bias = torch.cat([a.bias, b.bias])
+            elif i == linear_ids[-1]:
+                weight = 0.5 * torch.cat([a.weight, b.weight], dim=1)
+                bias = 0.5 * (a.bias + b.bias)
+            else:
+                weight = torch.block_diag(a.weight, b.weight)
+                bias = torch.cat([a.bias, b.bias])
+            layer = torch.nn.Linear(weight.shape[1], weight.shape[0]).double()
+            layer.weight.copy_(weight)
+            layer.bias.copy_(bias)
+            modules.append(layer)
+    return torch.nn.Sequential(*modules)
+
+
 def _mse(net, x, y) -> float:
     torch = _torch()
     with torch.no_grad():
@@ -444,8 +488,6 @@ def _state(net) -> dict:
 
 
 def _copy(net):
-    import copy
-
     return copy.deepcopy(net)
 
 

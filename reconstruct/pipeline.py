@@ -22,8 +22,9 @@ from .boundary import MultiDepthBoundary, PCABoundary
 from .embedding import SurfaceEmbedding
 from .errors import InvalidInputError, NotFittedError
 from .io import write_bytes_atomic
-from .meshing import default_spacing, mesh_inside
+from .meshing import default_spacing, mesh_inside, sample_ring
 from .mlp import AdaptiveMLP
+from .outline import border_inset, border_spacing, extend_outline
 from .spline import BoundarySpline
 from .surface_map import OnnxSurfaceMap
 from .validation import check_points
@@ -39,7 +40,7 @@ DEFAULT_LAM = 1.0
 #: stray points; 2 keeps F-score ≥ 0.97 on the smooth shapes while still combining two paths.
 DEFAULT_DEPTH = 2
 STATE_FORMAT = "scanstation-reconstruction/1"
-_MESH_PARAMS = ("lam", "depth", "n_corners", "boundary", "grid_spacing", "variance")
+_MESH_PARAMS = ("lam", "depth", "n_corners", "boundary", "grid_spacing", "variance", "extend")
 
 
 class SurfaceReconstructor(BaseEstimator):
@@ -56,8 +57,13 @@ class SurfaceReconstructor(BaseEstimator):
     boundary : "multidepth" (the paper) or "pca" (the Yumer–Kara baseline).
     embedding : "auto", "isomap", "mlle" or "landmark".
     n_neighbors : K of the neighbourhood graph; None chooses it automatically.
-    max_layers, max_neurons, activation, retrain : the adaptive MLP search.
+    max_layers, max_neurons, activation, retrain : the adaptive MLP search (`AdaptiveMLP`).
     grid_spacing : spacing of the interior grid in embedding units; None derives it from density.
+    extend : grow the spline polygon outward before meshing, in local point spacings
+        (`reconstruct.outline`): "auto" brings a multi-depth boundary out to where a 1-deep loop
+        through the outermost samples lies (the deeper loops' extra inset), the furthest the
+        network has data; "border" out to the sampled region's estimated true border (more
+        complete, but the network extrapolates there); a number; 0 meshes the spline as fitted.
     random_state : seed; the same seed gives the same mesh.
 
     Fitted attributes: ``embedding_`` (m, 2), ``points_`` (m, 3) the points it was fitted to,
@@ -80,6 +86,7 @@ class SurfaceReconstructor(BaseEstimator):
         grid_spacing: float | None = None,
         random_state: int | None = 0,
         variance: str = "local",
+        extend: float | str = "auto",
     ):
         self.lam = lam
         self.depth = depth
@@ -94,6 +101,7 @@ class SurfaceReconstructor(BaseEstimator):
         self.grid_spacing = grid_spacing
         self.random_state = random_state
         self.variance = variance
+        self.extend = extend
 
     def fit(self, points) -> SurfaceReconstructor:
         """points : (n, 3) float, any unit. Returns self with ``mesh_`` set."""
@@ -139,17 +147,24 @@ class SurfaceReconstructor(BaseEstimator):
             raise InvalidInputError(f"cannot re-mesh with {sorted(unknown)}: not a mesh parameter")
         if not hasattr(self, "surface_map_"):
             raise NotFittedError("fit() the reconstructor (or load() a saved one) first")
+        previous = self.get_params()
         self.set_params(**{k: v for k, v in params.items() if v is not None})
-        self._check_mesh_params()
+        try:
+            self._check_mesh_params()
+        except InvalidInputError:
+            self.set_params(**previous)  # a rejected value leaves the model as it was
+            raise
         started = time.perf_counter()
         interpolants = self._boundary_points()
         spline = BoundarySpline(lam=self.lam, variance=self.variance).fit(interpolants)
-        spacing = self.grid_spacing or default_spacing(spline.polygon_, len(self.embedding_))
-        boundary_vertices = spline.sample_by_spacing(spacing)
-        vertices_2d, faces = mesh_inside(spline.polygon_, boundary_vertices, spacing)
+        outline = self._extended(spline.polygon_)
+        spacing = self.grid_spacing or default_spacing(outline, len(self.embedding_))
+        boundary_vertices = sample_ring(outline, spacing)
+        vertices_2d, faces = mesh_inside(outline, boundary_vertices, spacing)
         vertices_3d = self.surface_map_(vertices_2d)
         self.boundary_points_ = interpolants
         self.spline_ = spline
+        self.outline_ = outline
         self.vertices_2d_ = vertices_2d
         self.mesh_ = trimesh.Trimesh(vertices_3d, faces, process=False)
         log.info(
@@ -162,6 +177,16 @@ class SurfaceReconstructor(BaseEstimator):
             1000 * (time.perf_counter() - started),
         )
         return self.mesh_
+
+    def _extended(self, polygon: np.ndarray) -> np.ndarray:
+        depth = self.depth if self.boundary == "multidepth" else 1
+        factor = {
+            "auto": border_inset(depth) - border_inset(1),
+            "border": border_inset(depth),
+        }.get(self.extend, self.extend)
+        if factor == 0:
+            return polygon
+        return extend_outline(polygon, factor * border_spacing(polygon, self.embedding_))
 
     def _boundary_points(self) -> np.ndarray:
         cache = self.__dict__.setdefault("_boundary_cache", {})
@@ -190,6 +215,12 @@ class SurfaceReconstructor(BaseEstimator):
         if self.variance not in ("local", "global"):
             raise InvalidInputError(
                 f"variance must be 'local' or 'global', got {self.variance!r}"
+            )
+        if not (self.extend in ("auto", "border") or (
+            not isinstance(self.extend, str) and np.isfinite(self.extend) and self.extend >= 0
+        )):
+            raise InvalidInputError(
+                f"extend must be 'auto', 'border' or a number >= 0, got {self.extend!r}"
             )
         if self.grid_spacing is not None and not self.grid_spacing > 0:
             raise InvalidInputError(f"grid_spacing must be > 0, got {self.grid_spacing}")

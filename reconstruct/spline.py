@@ -27,6 +27,7 @@ from scipy.interpolate import splev, splprep
 from sklearn.base import BaseEstimator
 
 from .errors import FitError, InvalidInputError, NotFittedError, ReconstructionWarning
+from .meshing import sample_ring
 
 log = logging.getLogger(__name__)
 
@@ -139,13 +140,7 @@ class BoundarySpline(BaseEstimator):
         self._check_fitted()
         if not (np.isfinite(spacing) and spacing > 0):
             raise InvalidInputError(f"spacing must be a positive number, got {spacing}")
-        steps = np.hypot(*np.diff(self.polygon_, axis=0).T)
-        arc = np.concatenate([[0.0], np.cumsum(steps)])
-        q = max(3, int(round(arc[-1] / spacing)))
-        at = np.linspace(0.0, arc[-1], q, endpoint=False)
-        return np.column_stack(
-            [np.interp(at, arc, self.polygon_[:, 0]), np.interp(at, arc, self.polygon_[:, 1])]
-        )
+        return sample_ring(self.polygon_, spacing)
 
     def contains(self, points) -> np.ndarray:
         """(n,) bool: which of ``points (n, 2)`` lie strictly inside ``polygon_``."""

@@ -167,3 +167,17 @@ def test_bad_input():
     ):
         with pytest.raises(InvalidInputError, match=next(iter(params))):
             MultiDepthBoundary(**params).fit(uv)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_outer_loop_follows_the_long_sides_of_an_elongated_region(seed):
+    # Rays from the centroid meet the long sides of a 4.7:1 rectangle (the S-curve's embedding)
+    # at grazing angles; depth below the envelope is measured across its edges, not along the
+    # rays, so the loop keeps to the sides instead of cutting in (radially: 0.889–0.912).
+    rng = np.random.default_rng(seed)
+    uv = rng.uniform(size=(1600, 2)) * [4.7, 1.0]
+    spacing = np.sqrt(4.7 / 1600)
+    rect = shapely.box(0.0, 0.0, 4.7, 1.0)
+    loop = MultiDepthBoundary(depth=1).fit(uv).depth_paths_[0]
+    assert shapely.Polygon(uv[loop]).area > 0.915 * rect.area
+    assert shapely.distance(rect.exterior, shapely.points(uv[loop])).max() < 3 * spacing

@@ -28,6 +28,20 @@ def test_reconstruct_then_remesh(tmp_path, capsys):
     again = tmp_path / "again.stl"
     assert main(["--quiet", "remesh", str(state), "-o", str(again), "--lam", "4"]) == 0
     assert len(trimesh.load(again, force="mesh").faces) > 100
+    areas = {}
+    for extend in ("0", "border"):
+        grown = tmp_path / f"extend-{extend}.ply"
+        assert main(["--quiet", "remesh", str(state), "-o", str(grown), "--extend", extend]) == 0
+        areas[extend] = trimesh.load(grown, force="mesh").area
+    assert areas["0"] < areas["border"]
+
+
+def test_extend_option_rejects_a_bad_value(tmp_path, capsys):
+    cloud = _plane(tmp_path / "plane.xyz")
+    with pytest.raises(SystemExit) as exit_:
+        main(["reconstruct", str(cloud), "-o", str(tmp_path / "m.ply"), "--extend", "far"])
+    assert exit_.value.code == 2
+    assert "expected auto, border or a number >= 0, got 'far'" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(

@@ -87,6 +87,16 @@ def test_retrain_on_all_data_is_recorded():
     model = AdaptiveMLP(retrain=True, random_state=0, **SMALL).fit(uv, xyz)
     assert model.history_[-1].get("retrained") is True
     assert np.sqrt(np.mean((model.predict(uv) - xyz) ** 2)) < 0.2
+    widths = [m.out_features for m in model.torch_model_ if hasattr(m, "out_features")][:-1]
+    assert tuple(widths) == model.hidden_layers_  # one retrained net, not a mean
+
+
+def test_the_chosen_net_is_the_mean_of_its_two_final_fits(fitted):
+    model, _, _ = fitted
+    finals = [h["final"] for h in model.history_ if "final" in h]
+    assert finals == ["warm", "fresh"]
+    widths = [m.out_features for m in model.torch_model_ if hasattr(m, "out_features")][:-1]
+    assert tuple(widths) == tuple(2 * w for w in model.hidden_layers_)
 
 
 def test_fine_tune_keeps_the_architecture_and_improves_on_new_data(fitted):
@@ -170,3 +180,19 @@ def test_the_split_is_85_10_5_disjoint_with_two_held_out_samples_at_least(n):
     assert len(set(train) | set(test) | set(validation)) == n
     if n >= 144:
         assert abs(len(train) / n - 0.85) < 0.01 and abs(len(test) / n - 0.10) < 0.01
+
+
+@pytest.mark.parametrize("layers", [(4,), (5, 3)])
+def test_the_final_net_is_the_mean_of_two_fits_as_one_mlp(layers):
+    import torch
+
+    from reconstruct.mlp import _build, _mean_of
+
+    generator = torch.Generator().manual_seed(0)
+    a, b = (_build(layers, "tanh", 2, 3, generator) for _ in range(2))
+    merged = _mean_of(a, b)
+    x = torch.from_numpy(np.random.default_rng(0).normal(size=(50, 2)))
+    with torch.no_grad():
+        np.testing.assert_allclose(merged(x), 0.5 * (a(x) + b(x)), rtol=1e-12, atol=1e-12)
+    widths = [m.out_features for m in merged if isinstance(m, torch.nn.Linear)]
+    assert widths == [2 * w for w in layers] + [3]

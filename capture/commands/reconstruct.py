@@ -13,6 +13,7 @@ def add_reconstruction_options(parser, *, defaults=True) -> None:
 
     parser.add_argument("--lam", type=float, default=DEFAULT_LAM, help="spline smoothing λ")
     add_variance_option(parser)
+    add_extend_option(parser)
     parser.add_argument(
         "--depth", type=int, default=DEFAULT_DEPTH, help=f"boundary path depths ({DEFAULT_DEPTH})"
     )
@@ -36,12 +37,34 @@ def add_variance_option(parser, default="local") -> None:
         "rule, λ≈0.002)")
 
 
+def add_extend_option(parser, default="auto") -> None:
+    parser.add_argument(
+        "--extend", type=_extend, default=default, metavar="auto|border|SPACINGS",
+        help="grow the boundary outward before meshing: 'auto' (default) out to the outermost "
+        "samples, 'border' to the estimated true border, or a number of point spacings")
+
+
+def _extend(text: str):
+    if text in ("auto", "border"):
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value >= 0:  # also NaN
+        import argparse
+
+        raise argparse.ArgumentTypeError(f"expected auto, border or a number >= 0, got {text!r}")
+    return value
+
+
 def reconstructor_from_args(args):
     from reconstruct.pipeline import SurfaceReconstructor
 
     return SurfaceReconstructor(
         lam=args.lam,
         variance=args.variance,
+        extend=args.extend,
         depth=args.depth,
         embedding=args.embedding,
         n_neighbors=args.neighbors,

@@ -8,7 +8,7 @@ log = logging.getLogger("capture.cli")
 
 
 def add_parser(subparsers) -> None:
-    from .reconstruct import add_variance_option
+    from .reconstruct import add_extend_option, add_variance_option
 
     parser = subparsers.add_parser(
         "remesh", help="re-mesh a saved reconstruction with a new λ / depth (no retraining)"
@@ -19,6 +19,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--depth", type=int, default=None, help="boundary path depths")
     parser.add_argument("--spacing", type=float, default=None, help="grid spacing (2D units)")
     add_variance_option(parser, default=None)
+    add_extend_option(parser, default=None)
     parser.set_defaults(run=run)
 
 
@@ -29,7 +30,7 @@ def run(args) -> int:
     check_mesh_path(args.output)
     model = SurfaceReconstructor.load(args.state)
     mesh = model.remesh(lam=args.lam, depth=args.depth, grid_spacing=args.spacing,
-                        variance=args.variance)
+                        variance=args.variance, extend=args.extend)
     write_mesh(mesh, args.output)
     log.info("wrote %s (%d vertices, %d faces)", args.output, len(mesh.vertices), len(mesh.faces))
     return 0

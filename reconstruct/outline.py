@@ -1,0 +1,74 @@
+"""Undo the inset of a boundary traced through the outermost samples.
+
+Samples of a surface lie *inside* its true outline: the outermost of them sit a fraction of a
+point spacing in from the border, and a loop traced through them, smoothed by the spline (which
+also rounds corners), encloses less than the sampled region; a deeper multi-depth loop lies
+further in. On 1,600 and 20,000 uniform points in a square, a 5:1 rectangle and a disk (4 seeds
+each), the fitted spline of the boundary sampled to depth d lies a mean ``BORDER_INSET[d]``
+spacings (as `border_spacing` measures them; standard deviation 0.10–0.15) inside the true
+border: (true area − fitted area) / perimeter.
+
+The pipeline grows its outline by ``BORDER_INSET[d] − BORDER_INSET[1]`` by default: out to where
+the outermost samples are, so that combining deeper paths (the paper's robustness to stray
+points) does not cost coverage, while the network is not asked to extrapolate. Growing by the
+whole ``BORDER_INSET[d]`` reaches the estimated true border.
+
+The local spacing is measured at the outline: around evenly spaced stations on the polygon,
+``k`` samples fall within a radius r, and the part of that disk inside the polygon holds them,
+so the density is k / area(disk ∩ polygon) and the spacing its inverse square root. A disk cut
+by the border would overstate the spacing if counted whole.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import shapely
+from scipy.spatial import cKDTree
+
+from .errors import FitError
+
+#: Mean inset of the fitted boundary spline below the true border, in local point spacings,
+#: by boundary depth (measured as described above; deeper loops lie further in).
+BORDER_INSET = {1: 0.67, 2: 0.92, 3: 1.19}
+
+
+def border_inset(depth: int) -> float:
+    """Inset in point spacings of a boundary sampled to ``depth`` (deeper than 3: as 3)."""
+    return BORDER_INSET[min(max(int(depth), 1), max(BORDER_INSET))]
+
+
+def border_spacing(polygon: np.ndarray, points: np.ndarray, k: int = 16, n_stations: int = 64):
+    """Median point spacing along the outline, in the points' units.
+
+    polygon : (p, 2) closed outline; points : (n, 2) the samples it encloses.
+    """
+    ring = shapely.LinearRing(polygon)
+    region = shapely.Polygon(ring)
+    at = np.linspace(0.0, ring.length, n_stations, endpoint=False)
+    stations = shapely.get_coordinates(shapely.line_interpolate_point(ring, at))
+    k = min(int(k), len(points))
+    radius = cKDTree(points).query(stations, k=k)[0][:, -1]
+    disks = shapely.buffer(shapely.points(stations), radius, quad_segs=16)
+    inside = shapely.area(shapely.intersection(disks, region))
+    spacing = np.sqrt(inside[inside > 0] / k)
+    if len(spacing) == 0:
+        raise FitError("no sample lies near the boundary outline")
+    return float(np.median(spacing))
+
+
+def extend_outline(polygon: np.ndarray, distance: float) -> np.ndarray:
+    """(q, 2) closed polygon grown outward by ``distance`` (round joins), same orientation."""
+    if distance <= 0:
+        return polygon
+    grown = shapely.Polygon(polygon).buffer(float(distance), quad_segs=8)
+    if grown.geom_type != "Polygon":  # cannot happen for a positive buffer of one polygon
+        grown = max(shapely.get_parts(grown), key=lambda part: part.area)
+    ring = np.asarray(grown.exterior.coords)
+    if np.sign(_signed_area(ring)) != np.sign(_signed_area(polygon)):
+        ring = ring[::-1]
+    return ring
+
+
+def _signed_area(polygon: np.ndarray) -> float:
+    x, y = polygon[:, 0], polygon[:, 1]
+    return 0.5 * float(np.dot(x[:-1], y[1:]) - np.dot(x[1:], y[:-1]))

@@ -24,11 +24,12 @@ class FixedArchitectureMLP(AdaptiveMLP):
 
     def __init__(self, hidden_layers=(16, 8), activation: str = "tanh", final_epochs: int = 150,
                  steps_per_epoch: int = 20, patience: int = 6, test_weight: float = 0.5,
-                 max_train_points: int = 6000, random_state: int | None = 0):
+                 max_train_points: int = 6000, final_fit: str = "better",
+                 random_state: int | None = 0):
         super().__init__(
             max_layers=len(hidden_layers), max_neurons=max(hidden_layers), activation=activation,
             final_epochs=final_epochs, steps_per_epoch=steps_per_epoch, patience=patience,
-            test_weight=test_weight, max_train_points=max_train_points,
+            test_weight=test_weight, max_train_points=max_train_points, final_fit=final_fit,
             random_state=random_state,
         )
         self.hidden_layers = hidden_layers

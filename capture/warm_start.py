@@ -58,7 +58,7 @@ def fit_fresh(points, params: ReconstructionParams) -> SurfaceReconstructor:
     mlp = AdaptiveMLP(
         max_layers=params.max_layers, max_neurons=params.max_neurons,
         max_epochs=params.max_epochs, final_epochs=params.final_epochs,
-        max_train_points=params.max_train_points, random_state=params.seed,
+        max_train_points=params.max_train_points, final_fit="better", random_state=params.seed,
     ).fit(embedding.embedding_, points[embedding.support_])
     return _assemble(embedding, points, mlp, params)
 

@@ -26,6 +26,7 @@ import shapely
 from scipy.spatial import cKDTree
 
 from .errors import FitError
+from .meshing import sample_ring
 
 #: Mean inset of the fitted boundary spline below the true border, in local point spacings,
 #: by boundary depth (measured as described above; deeper loops lie further in).
@@ -37,36 +38,48 @@ def border_inset(depth: int) -> float:
     return BORDER_INSET[min(max(int(depth), 1), max(BORDER_INSET))]
 
 
-def border_spacing(polygon: np.ndarray, points: np.ndarray, k: int = 16, n_stations: int = 64):
+def border_spacing(polygon: np.ndarray, tree: cKDTree, k: int = 16, n_stations: int = 64):
     """Median point spacing along the outline, in the points' units.
 
-    polygon : (p, 2) closed outline; points : (n, 2) the samples it encloses.
+    polygon : (p, 2) closed outline; tree : `scipy.spatial.cKDTree` of the (n, 2) samples it
+    encloses (built once by the caller: re-meshing calls this every time).
     """
-    ring = shapely.LinearRing(polygon)
-    region = shapely.Polygon(ring)
-    at = np.linspace(0.0, ring.length, n_stations, endpoint=False)
-    stations = shapely.get_coordinates(shapely.line_interpolate_point(ring, at))
-    k = min(int(k), len(points))
-    radius = cKDTree(points).query(stations, k=k)[0][:, -1]
-    disks = shapely.buffer(shapely.points(stations), radius, quad_segs=16)
+    region = shapely.Polygon(polygon)
+    perimeter = float(np.sum(np.hypot(*np.diff(polygon, axis=0).T)))
+    stations = sample_ring(polygon, perimeter / n_stations)
+    radius = tree.query(stations, k=min(int(k), tree.n))[0][:, -1]
+    disks = shapely.buffer(shapely.points(stations), radius, quad_segs=8)
     inside = shapely.area(shapely.intersection(disks, region))
-    spacing = np.sqrt(inside[inside > 0] / k)
+    spacing = np.sqrt(inside[inside > 0] / min(int(k), tree.n))
     if len(spacing) == 0:
         raise FitError("no sample lies near the boundary outline")
     return float(np.median(spacing))
 
 
 def extend_outline(polygon: np.ndarray, distance: float) -> np.ndarray:
-    """(q, 2) closed polygon grown outward by ``distance`` (round joins), same orientation."""
+    """(p, 2) closed polygon grown outward by ``distance``, same orientation.
+
+    Each vertex moves along the outward normal of its two neighbours' chord: the dense spline
+    polygon keeps its vertex count (re-meshing stays fast). Where that folds a tight inward
+    bend onto itself, the polygon is grown by a round-join buffer instead.
+    """
     if distance <= 0:
         return polygon
-    grown = shapely.Polygon(polygon).buffer(float(distance), quad_segs=8)
-    if grown.geom_type != "Polygon":  # cannot happen for a positive buffer of one polygon
-        grown = max(shapely.get_parts(grown), key=lambda part: part.area)
-    ring = np.asarray(grown.exterior.coords)
-    if np.sign(_signed_area(ring)) != np.sign(_signed_area(polygon)):
-        ring = ring[::-1]
-    return ring
+    ring = polygon[:-1]
+    chord = np.roll(ring, -1, axis=0) - np.roll(ring, 1, axis=0)
+    normal = np.column_stack([chord[:, 1], -chord[:, 0]])  # right of travel: outside if CCW
+    normal /= np.maximum(np.hypot(normal[:, 0], normal[:, 1]), 1e-300)[:, None]
+    if _signed_area(polygon) < 0:
+        normal = -normal
+    moved = ring + distance * normal
+    grown = np.vstack([moved, moved[:1]])
+    if shapely.LinearRing(grown).is_simple:
+        return grown
+    buffered = shapely.Polygon(polygon).buffer(float(distance), quad_segs=8)
+    grown = np.asarray(buffered.exterior.coords)
+    if np.sign(_signed_area(grown)) != np.sign(_signed_area(polygon)):
+        grown = grown[::-1]
+    return grown
 
 
 def _signed_area(polygon: np.ndarray) -> float:

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 from sklearn.base import BaseEstimator
 
 from .boundary import MultiDepthBoundary, PCABoundary
@@ -186,7 +187,10 @@ class SurfaceReconstructor(BaseEstimator):
         }.get(self.extend, self.extend)
         if factor == 0:
             return polygon
-        return extend_outline(polygon, factor * border_spacing(polygon, self.embedding_))
+        cache = self.__dict__.setdefault("_boundary_cache", {})
+        if "tree" not in cache:
+            cache["tree"] = cKDTree(self.embedding_)
+        return extend_outline(polygon, factor * border_spacing(polygon, cache["tree"]))
 
     def _boundary_points(self) -> np.ndarray:
         cache = self.__dict__.setdefault("_boundary_cache", {})

@@ -196,3 +196,12 @@ def test_the_final_net_is_the_mean_of_two_fits_as_one_mlp(layers):
         np.testing.assert_allclose(merged(x), 0.5 * (a(x) + b(x)), rtol=1e-12, atol=1e-12)
     widths = [m.out_features for m in merged if isinstance(m, torch.nn.Linear)]
     assert widths == [2 * w for w in layers] + [3]
+
+
+def test_final_fit_better_keeps_one_net_and_bad_values_are_refused():
+    uv, xyz = paraboloid(300)
+    model = AdaptiveMLP(final_fit="better", random_state=0, **SMALL).fit(uv, xyz)
+    widths = [m.out_features for m in model.torch_model_ if hasattr(m, "out_features")][:-1]
+    assert tuple(widths) == model.hidden_layers_
+    with pytest.raises(InvalidInputError, match="final_fit"):
+        AdaptiveMLP(final_fit="best", **SMALL).fit(uv, xyz)

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import shapely
+from scipy.spatial import cKDTree
 
 from reconstruct.boundary import MultiDepthBoundary
 from reconstruct.errors import InvalidInputError
@@ -18,11 +19,11 @@ def uniform_square(n, seed):
 def test_border_spacing_counts_only_the_part_of_each_disk_inside():
     uv = uniform_square(4000, 0)
     square = np.array([[0, 0], [1, 0], [1, 1], [0, 1], [0, 0]], dtype=float)
-    spacing = border_spacing(square, uv)
+    spacing = border_spacing(square, cKDTree(uv))
     # k / area(disk ∩ square): the true spacing within sampling error; the whole disk would
     # read about √2 too large on the sides and 2 at the corners
     assert spacing == pytest.approx(np.sqrt(1 / 4000), rel=0.1)
-    assert border_spacing(square * 10 + 3, uv * 10 + 3) == pytest.approx(10 * spacing)
+    assert border_spacing(square * 10 + 3, cKDTree(uv * 10 + 3)) == pytest.approx(10 * spacing)
 
 
 def test_extend_outline_grows_by_the_distance_and_keeps_orientation():
@@ -45,7 +46,7 @@ def test_the_calibrated_inset_restores_the_sampled_area(depth):
     spline = BoundarySpline(lam=1.0, variance="local").fit(
         MultiDepthBoundary(depth=depth).fit(uv).points_
     )
-    spacing = border_spacing(spline.polygon_, uv)
+    spacing = border_spacing(spline.polygon_, cKDTree(uv))
     before = shapely.Polygon(spline.polygon_)
     after = shapely.Polygon(extend_outline(spline.polygon_, border_inset(depth) * spacing))
     tolerance = 0.15 * spacing * after.length
@@ -73,3 +74,16 @@ def test_reconstructor_extend_options_and_errors():
             model.remesh(extend=bad)
     model.remesh()  # the rejected values left the model as it was
     assert shapely.Polygon(model.outline_).area == pytest.approx(areas[1.5])
+
+
+def test_extend_outline_falls_back_to_a_buffer_where_offsets_fold():
+    # a square with a notch 0.02 wide: moving the vertices 0.05 along their normals crosses it
+    notch = np.array([[0, 0], [1, 0], [1, 1], [0.51, 1], [0.51, 0.5], [0.49, 0.5], [0.49, 1],
+                      [0, 1], [0, 0]], dtype=float)
+    grown = extend_outline(notch, 0.05)
+    ring = shapely.LinearRing(grown)
+    assert ring.is_simple and ring.is_ccw
+    assert shapely.Polygon(grown).contains(shapely.Polygon(notch))
+    assert shapely.Polygon(grown).area == pytest.approx(
+        shapely.Polygon(notch).buffer(0.05, quad_segs=8).area, rel=1e-9
+    )

@@ -36,6 +36,7 @@ from bench.speed_embedding import print_table as print_embedding_table  # noqa: 
 from bench.speed_embedding import run_embedding_bench  # noqa: E402
 from bench.speed_embedding import verdict as embedding_verdict  # noqa: E402
 from reconstruct.embedding import SurfaceEmbedding  # noqa: E402
+from reconstruct.meshing import default_spacing  # noqa: E402
 from reconstruct.mlp import SPLIT, AdaptiveMLP  # noqa: E402
 from reconstruct.pipeline import SurfaceReconstructor  # noqa: E402
 from sim.shapes import make_shape  # noqa: E402
@@ -112,11 +113,7 @@ def training_bench(sizes=(1600, 20000), seed=0) -> list[dict]:
 def remesh_bench(seed=0, repeats=7) -> dict:
     shape = make_shape("sphere_cap", 20000, noise=0.01, random_state=seed)
     model = SurfaceReconstructor(random_state=seed).fit(shape.points)
-    # the grid spacing that gives ~50k vertices inside the meshed outline
-    polygon = model.outline_
-    x, y = polygon[:, 0], polygon[:, 1]
-    area = 0.5 * abs(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1)))
-    spacing = float(np.sqrt(area / 50000))
+    spacing = default_spacing(model.outline_, 50000)  # ~50k vertices inside the outline
     times, depth_times, vertices = [], [], 0
     for i in range(repeats):
         lam = (2.0, 3.0)[i % 2]

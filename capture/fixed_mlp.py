@@ -24,7 +24,7 @@ class FixedArchitectureMLP(AdaptiveMLP):
 
     def __init__(self, hidden_layers=(16, 8), activation: str = "tanh", final_epochs: int = 150,
                  steps_per_epoch: int = 20, patience: int = 6, test_weight: float = 0.5,
-                 max_train_points: int = 6000, final_fit: str = "better",
+                 max_train_points: int = 6000, final_fit: str = "mean",
                  random_state: int | None = 0):
         super().__init__(
             max_layers=len(hidden_layers), max_neurons=max(hidden_layers), activation=activation,

@@ -263,14 +263,11 @@ class _Polar:
         would be many spacings.
         """
         members = np.flatnonzero(mask)
-        order = np.lexsort((-self.r[members], self.sector[members]))
-        _, first = np.unique(self.sector[members][order], return_index=True)
-        vertex = members[order[first]]  # outermost point per non-empty sector, by angle
+        # the outermost point of each non-empty fine sector, by angle
+        vertex = members[_sector_corners(self.theta[members], self.r[members], self.n_sectors)]
         if len(vertex) < 3:
             return np.zeros(len(ids))
         angle = self.theta[vertex]
-        vertex = vertex[np.argsort(angle, kind="stable")]
-        angle = np.sort(angle)
         after = np.searchsorted(angle, self.theta[ids], side="right") % len(vertex)
         a = self.offset[vertex[after - 1]]
         b = self.offset[vertex[after]]

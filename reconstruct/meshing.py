@@ -22,7 +22,7 @@ def default_spacing(polygon: np.ndarray, n_points: int) -> float:
 
     polygon : (p, 2) closed boundary polygon. n_points : cloud size.
     """
-    area = abs(_shoelace(polygon))
+    area = abs(signed_area(polygon))
     return float(np.sqrt(area / max(int(n_points), 1)))
 
 
@@ -241,6 +241,7 @@ def _densify(polygon, step):
     return start + np.repeat(seg, counts, axis=0) * t[:, None]
 
 
-def _shoelace(polygon):
+def signed_area(polygon: np.ndarray) -> float:
+    """Shoelace area of a (p, 2) polygon, closed or not: > 0 counter-clockwise."""
     x, y = polygon[:, 0], polygon[:, 1]
     return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))

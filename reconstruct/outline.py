@@ -26,7 +26,7 @@ import shapely
 from scipy.spatial import cKDTree
 
 from .errors import FitError
-from .meshing import sample_ring
+from .meshing import sample_ring, signed_area
 
 #: Mean inset of the fitted boundary spline below the true border, in local point spacings,
 #: by boundary depth (measured as described above; deeper loops lie further in).
@@ -69,7 +69,7 @@ def extend_outline(polygon: np.ndarray, distance: float) -> np.ndarray:
     chord = np.roll(ring, -1, axis=0) - np.roll(ring, 1, axis=0)
     normal = np.column_stack([chord[:, 1], -chord[:, 0]])  # right of travel: outside if CCW
     normal /= np.maximum(np.hypot(normal[:, 0], normal[:, 1]), 1e-300)[:, None]
-    if _signed_area(polygon) < 0:
+    if signed_area(polygon) < 0:
         normal = -normal
     moved = ring + distance * normal
     grown = np.vstack([moved, moved[:1]])
@@ -77,11 +77,6 @@ def extend_outline(polygon: np.ndarray, distance: float) -> np.ndarray:
         return grown
     buffered = shapely.Polygon(polygon).buffer(float(distance), quad_segs=8)
     grown = np.asarray(buffered.exterior.coords)
-    if np.sign(_signed_area(grown)) != np.sign(_signed_area(polygon)):
+    if np.sign(signed_area(grown)) != np.sign(signed_area(polygon)):
         grown = grown[::-1]
     return grown
-
-
-def _signed_area(polygon: np.ndarray) -> float:
-    x, y = polygon[:, 0], polygon[:, 1]
-    return 0.5 * float(np.dot(x[:-1], y[1:]) - np.dot(x[1:], y[:-1]))

@@ -27,7 +27,7 @@ from scipy.interpolate import splev, splprep
 from sklearn.base import BaseEstimator
 
 from .errors import FitError, InvalidInputError, NotFittedError, ReconstructionWarning
-from .meshing import sample_ring
+from .meshing import sample_ring, signed_area
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +97,7 @@ class BoundarySpline(BaseEstimator):
         raw = np.vstack([raw, raw[:1]])
         is_simple = bool(shapely.LinearRing(raw).is_simple)
         polygon = raw if is_simple else _largest_loop(raw)
-        if polygon is None or abs(_signed_area(polygon)) <= 1e-9 * spread:
+        if polygon is None or abs(signed_area(polygon)) <= 1e-9 * spread:
             raise FitError(
                 f"boundary spline collapsed to a curve without area: lam={self.lam} "
                 "is too large, use a smaller --lam"
@@ -209,11 +209,6 @@ def _moving_average(loop: np.ndarray, w: int) -> np.ndarray:
     return np.mean([np.roll(loop, s, axis=0) for s in shifts], axis=0)
 
 
-def _signed_area(polygon: np.ndarray) -> float:
-    x, y = polygon[:, 0], polygon[:, 1]
-    return 0.5 * float(np.dot(x[:-1], y[1:]) - np.dot(x[1:], y[:-1]))
-
-
 def _largest_loop(polygon: np.ndarray) -> np.ndarray | None:
     """The exterior of the largest piece of the valid version of a self-crossing polygon, closed
     and with the original orientation; None if no piece has an area."""
@@ -222,6 +217,6 @@ def _largest_loop(polygon: np.ndarray) -> np.ndarray | None:
     if not areas or max(areas) <= 0:
         return None
     ring = np.asarray(pieces[int(np.argmax(areas))].exterior.coords)
-    if np.sign(_signed_area(ring)) != np.sign(_signed_area(polygon)):
+    if np.sign(signed_area(ring)) != np.sign(signed_area(polygon)):
         ring = ring[::-1]
     return ring

@@ -107,9 +107,10 @@ def main() -> None:
     print(f"\ntarget (lower than the paper on every row): {verdict}")
     mlp = AdaptiveMLP()
     print(f"training: the paper's search (85/10/5 split, ≤ 3 layers × 6 neurons) with our "
-          f"optimiser: full-batch L-BFGS, ≤ {mlp.max_epochs} epochs of {mlp.steps_per_epoch} "
-          f"steps, early stop after {mlp.patience}, then ≤ {mlp.final_epochs} final epochs "
-          f"(the paper: 20 epochs, early stop 3); medians of {args.seeds} seeds")
+          f"optimiser: full-batch L-BFGS (scipy's L-BFGS-B), ≤ {mlp.max_epochs} epochs of "
+          f"{mlp.steps_per_epoch} steps, early stop after {mlp.patience}, then "
+          f"≤ {mlp.final_epochs} final epochs (the paper: 20 epochs, early stop 3); "
+          f"medians of {args.seeds} seeds")
 
 
 if __name__ == "__main__":

@@ -6,10 +6,12 @@ the weighted train–test error; add a neuron until that error stops improving o
 reached; then open the next layer; return the configuration with the best weighted error,
 optionally retrained on all samples. Hidden activation is selectable, the output layer linear.
 
-Training is full-batch L-BFGS in torch (tiny nets are overhead-bound, so few large steps beat many
-small ones). The chosen configuration is then trained to convergence from its searched weights
-and from a fresh start, and their mean is kept (one MLP with the two side by side). That net
-is exported to ONNX with its normalisation inside; `predict` and meshing run on onnxruntime.
+Training is full-batch L-BFGS: torch computes the loss and its gradient, scipy's compiled
+L-BFGS-B takes the steps (tiny nets are overhead-bound, so few large steps beat many small ones,
+and a compiled optimiser loop beats a Python one). The chosen configuration is then trained to
+convergence from its searched weights and from a fresh start, and their mean is kept (one MLP
+with the two side by side). That net is exported to ONNX with its normalisation inside;
+`predict` and meshing run on onnxruntime.
 """
 
 from __future__ import annotations
@@ -347,42 +349,61 @@ class AdaptiveMLP(BaseEstimator):
         return parts
 
     def _train(self, net, tensors, max_epochs: int | None = None) -> dict:
-        """Full-batch L-BFGS with early stopping on validation; keeps the best weights."""
-        torch = _torch()
+        """Full-batch L-BFGS with early stopping on validation; keeps the best weights.
+
+        One epoch is ``steps_per_epoch`` L-BFGS iterations (scipy's L-BFGS-B, its curvature
+        history kept across epochs); torch computes the loss and its gradient. scipy's
+        compiled loop costs 1.4–3× less per iteration than ``torch.optim.LBFGS`` on these
+        tiny nets, and it spares the 1.2 s import of ``torch._dynamo`` that torch's optimizers
+        trigger."""
+        from scipy.optimize import minimize
+
         started = time.perf_counter()
-        x, y = tensors["train"]
         xv, yv = tensors["validation"]
-        optimizer = torch.optim.LBFGS(
-            net.parameters(), lr=1.0, max_iter=int(self.steps_per_epoch), history_size=20,
-            line_search_fn="strong_wolfe", tolerance_grad=1e-10, tolerance_change=1e-14,
-        )
+        epochs = int(max_epochs or self.max_epochs)
+        steps = int(self.steps_per_epoch)
+        with _FlatParameters(net) as flat:
+            loss_and_gradient = flat.loss_and_gradient(*tensors["train"])
+            best = {"mse": _mse(net, xv, yv), "theta": flat.get(), "stale": 0, "epochs": 0}
 
-        def closure():
-            optimizer.zero_grad()
-            loss = torch.mean((net(x) - y) ** 2)
-            loss.backward()
-            return loss
+            def end_of_iteration(intermediate_result):
+                nonlocal iterations
+                iterations += 1
+                if iterations % steps:
+                    return
+                best["epochs"] += 1
+                flat.set(intermediate_result.x)
+                val = _mse(net, xv, yv)
+                if not np.isfinite(val):
+                    raise StopIteration
+                if val < best["mse"]:
+                    best.update(mse=val, theta=intermediate_result.x.copy(), stale=0)
+                else:
+                    best["stale"] += 1
+                    if best["stale"] >= self.patience:
+                        raise StopIteration
 
-        best_val, best_state, stale, epochs = _mse(net, xv, yv), _state(net), 0, 0
-        for epochs in range(1, int(max_epochs or self.max_epochs) + 1):  # noqa: B007
-            optimizer.step(closure)
-            val = _mse(net, xv, yv)
-            if not np.isfinite(val):
-                break
-            if val < best_val:
-                best_val, best_state, stale = val, _state(net), 0
-            else:
-                stale += 1
-                if stale >= self.patience:
-                    break
-        net.load_state_dict(best_state)
+            iterations = 0
+            result = minimize(
+                loss_and_gradient, flat.get(), jac=True, method="L-BFGS-B",
+                callback=end_of_iteration,
+                options={"maxiter": epochs * steps, "maxfun": epochs * steps * 5 // 4,
+                         "maxcor": 20, "ftol": 1e-15, "gtol": 1e-10},
+            )
+            if iterations % steps:  # stopped inside an epoch (converged): check where it ended
+                best["epochs"] += 1
+                flat.set(result.x)
+                val = _mse(net, xv, yv)
+                if val < best["mse"]:
+                    best.update(mse=val, theta=result.x.copy())
+            flat.set(best["theta"])
         train, test = _mse(net, *tensors["train"]), _mse(net, *tensors["test"])
         return {
             "train_mse": train,
             "test_mse": test,
-            "validation_mse": best_val,
+            "validation_mse": best["mse"],
             "weighted_mse": (1 - self.test_weight) * train + self.test_weight * test,
-            "epochs": epochs,
+            "epochs": best["epochs"],
             "seconds": time.perf_counter() - started,
         }
 
@@ -458,6 +479,61 @@ class AdaptiveMLP(BaseEstimator):
                 opset_version=17,
             )
         return buffer.getvalue()
+
+
+
+class _FlatParameters:
+    """A net's parameters and gradients as views into two flat float64 buffers, so that
+    scipy's optimisers read and write them without copies per tensor. On exit every parameter
+    gets its own storage back and its gradient is dropped."""
+
+    def __init__(self, net):
+        self.net = net
+        self.params = list(net.parameters())
+
+    def __enter__(self) -> _FlatParameters:
+        torch = _torch()
+        total = sum(p.numel() for p in self.params)
+        self._values = torch.empty(total, dtype=torch.float64)
+        self._grads = torch.zeros(total, dtype=torch.float64)
+        offset = 0
+        with torch.no_grad():
+            for p in self.params:
+                k = p.numel()
+                self._values[offset : offset + k] = p.reshape(-1)
+                p.data = self._values[offset : offset + k].view_as(p)
+                p.grad = self._grads[offset : offset + k].view_as(p)
+                offset += k
+        self.values, self.grads = self._values.numpy(), self._grads.numpy()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for p in self.params:
+            p.data = p.data.clone()
+            p.grad = None
+
+    def get(self) -> np.ndarray:
+        return self.values.copy()
+
+    def set(self, theta: np.ndarray) -> None:
+        self.values[:] = theta
+
+    def loss_and_gradient(self, x, y):
+        """f(theta) → (mean squared error of net(x) against y, its gradient (p,))."""
+        torch = _torch()
+        net = self.net
+
+        def evaluate(theta):
+            self.values[:] = theta
+            self.grads[:] = 0.0
+            loss = torch.nn.functional.mse_loss(net(x), y)
+            loss.backward()
+            value = loss.item()
+            if not np.isfinite(value):
+                return np.inf, np.zeros_like(self.grads)
+            return value, self.grads.copy()
+
+        return evaluate
 
 
 def _mean_of(first, second):

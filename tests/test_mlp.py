@@ -205,3 +205,39 @@ def test_final_fit_better_keeps_one_net_and_bad_values_are_refused():
     assert tuple(widths) == model.hidden_layers_
     with pytest.raises(InvalidInputError, match="final_fit"):
         AdaptiveMLP(final_fit="best", **SMALL).fit(uv, xyz)
+
+
+def test_training_early_stops_and_keeps_the_best_validation_weights():
+    """One `_train` call: the net comes back with its own storage, at the weights of its best
+    validation error, and stops after `patience` epochs without improvement."""
+    from reconstruct.mlp import _build, _mse
+
+    uv, xyz = paraboloid(400, sigma=0.5)
+    mlp = AdaptiveMLP(max_epochs=60, patience=2, random_state=0)
+    mlp._check_params()
+    rng, generator = mlp._random()
+    tensors = mlp._samples(uv, xyz, rng, new_normalisation=True)
+    net = _build((12,), "tanh", 2, 3, generator)
+    record = mlp._train(net, tensors)
+    params = list(net.parameters())
+    assert all(p.grad is None for p in params)
+    pointers = {p.untyped_storage().data_ptr() for p in params}
+    assert len(pointers) == len(params)  # no longer views of one flat buffer
+    assert 2 < record["epochs"] < 60  # the noise floor stops it well before the limit
+    assert _mse(net, *tensors["validation"]) == pytest.approx(record["validation_mse"], rel=1e-12)
+
+
+def test_training_does_not_import_torch_dynamo():
+    """torch.optim's optimizers import torch._dynamo on first use (1.2 s here); ours don't."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "from reconstruct.mlp import AdaptiveMLP\n"
+        "uv = np.random.default_rng(0).uniform(-1, 1, (200, 2))\n"
+        "AdaptiveMLP(max_layers=1, max_neurons=2, final_epochs=3).fit(uv, np.c_[uv, uv.sum(1)])\n"
+        "print('torch._dynamo' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

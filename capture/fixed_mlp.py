@@ -29,6 +29,7 @@ class FixedArchitectureMLP(AdaptiveMLP):
         super().__init__(
             max_layers=len(hidden_layers), max_neurons=max(hidden_layers), activation=activation,
             final_epochs=final_epochs, steps_per_epoch=steps_per_epoch, patience=patience,
+            final_patience=patience,  # no search here: its one patience is the final fits'
             test_weight=test_weight, max_train_points=max_train_points, final_fit=final_fit,
             random_state=random_state,
         )

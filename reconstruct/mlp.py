@@ -33,6 +33,11 @@ log = logging.getLogger(__name__)
 
 ACTIVATIONS = ("tanh", "sigmoid", "relu", "elu", "softplus")
 SPLIT = (0.85, 0.10, 0.05)  # train, test, validation (the paper's)
+# The mean of the two final fits is kept only while their weighted errors agree within this
+# factor. Both fits' errors are mostly the noise, so 5 % more means a far worse fit of the
+# surface: averaging it in cost up to 1.5× the Chamfer distance of the better fit alone
+# (S-curve, 1,600 points, seeds 1 and 2), and a stalled fresh fit (7× the error) wrecked a mesh.
+MEAN_GUARD = 1.05
 
 
 def _torch():
@@ -120,8 +125,14 @@ class AdaptiveMLP(BaseEstimator):
     max_epochs : L-BFGS epochs (``steps_per_epoch`` iterations each) per searched configuration
         (20, the paper's epoch count: 15–25 % faster than 30 at the same mesh quality, measured).
     final_epochs : epochs the chosen configuration then trains on (still early-stopped), from
-        its grown weights and from a fresh start; the better is kept.
-    patience : epochs without validation improvement before early stopping.
+        its grown weights and from a fresh start (which of them is kept: ``final_fit``).
+    patience : epochs without validation improvement before early stopping (the search, and
+        `fine_tune`).
+    final_patience : the same for the chosen configuration's final fits. Their held-out error
+        is mostly the noise and creeps down slowly: stopping after 6 flat epochs left fits
+        short of the surface. With 10 (bench/quality.py, 1,600 points): S-curve σ 0.5 %
+        Chamfer-L1 0.0096 → 0.0084, half torus σ 1 % F-score 0.960 → 0.970. 15 was no better
+        on these and took the half torus end to end from 7.4 s to 13.4 s (bench/speed.py).
     neuron_patience : added neurons without a better weighted error before the layer is closed.
     tol : relative improvement that counts as better.
     test_weight : weight of the test error in the weighted train–test error.
@@ -131,7 +142,8 @@ class AdaptiveMLP(BaseEstimator):
         net from the narrower one (function-preserving split), a little cheaper.
     max_train_points : training samples are capped (randomly) for speed on large clouds.
     final_fit : "mean" keeps the mean of the chosen configuration's two final fits (warm and
-        fresh; one MLP twice as wide, see `_train_final`), "better" the one with the lower
+        fresh; one MLP twice as wide, see `_train_final`) unless their weighted errors differ
+        by more than 5 % (then the better one), "better" always the one with the lower
         weighted train–test error (a net of the configuration's own width: cheaper to
         fine-tune and evaluate, as the incremental scan engine does many times).
     max_search_points : the search trains each configuration on a random subset of at most this
@@ -154,6 +166,7 @@ class AdaptiveMLP(BaseEstimator):
         final_epochs: int = 150,
         steps_per_epoch: int = 20,
         patience: int = 6,
+        final_patience: int = 10,
         neuron_patience: int = 3,
         tol: float = 0.005,
         test_weight: float = 0.5,
@@ -171,6 +184,7 @@ class AdaptiveMLP(BaseEstimator):
         self.final_epochs = final_epochs
         self.steps_per_epoch = steps_per_epoch
         self.patience = patience
+        self.final_patience = final_patience
         self.neuron_patience = neuron_patience
         self.tol = tol
         self.test_weight = test_weight
@@ -192,7 +206,7 @@ class AdaptiveMLP(BaseEstimator):
         if self.growth not in ("fresh", "net2net"):
             raise InvalidInputError(f"growth must be 'fresh' or 'net2net', got {self.growth!r}")
         for name in ("max_layers", "max_neurons", "max_epochs", "final_epochs", "steps_per_epoch",
-                     "patience",
+                     "patience", "final_patience",
                      "neuron_patience", "max_train_points", "max_search_points"):
             value = getattr(self, name)
             if int(value) != value or value < 1:
@@ -348,7 +362,8 @@ class AdaptiveMLP(BaseEstimator):
         parts["all"] = np.sort(np.concatenate([parts["train"], parts["test"], parts["validation"]]))
         return parts
 
-    def _train(self, net, tensors, max_epochs: int | None = None) -> dict:
+    def _train(self, net, tensors, max_epochs: int | None = None,
+               patience: int | None = None) -> dict:
         """Full-batch L-BFGS with early stopping on validation; keeps the best weights.
 
         One epoch is ``steps_per_epoch`` L-BFGS iterations (scipy's L-BFGS-B, its curvature
@@ -380,7 +395,7 @@ class AdaptiveMLP(BaseEstimator):
                     best.update(mse=val, theta=intermediate_result.x.copy(), stale=0)
                 else:
                     best["stale"] += 1
-                    if best["stale"] >= self.patience:
+                    if best["stale"] >= (patience or self.patience):
                         raise StopIteration
 
             iterations = 0
@@ -410,7 +425,8 @@ class AdaptiveMLP(BaseEstimator):
     def _train_final(self, net, tensors, generator):
         """Train the chosen configuration to convergence twice, from its searched weights and
         from a fresh initialisation; return their mean (``final_fit="mean"``) or the one with
-        the lower weighted train–test error ("better"). The mean's squared error against the
+        the lower weighted train–test error ("better"; "mean" too when the other's error is
+        over ``MEAN_GUARD`` times it: that fit stalled). The mean's squared error against the
         true surface is at most the two fits' average (Jensen) and usually below the better
         one, as their independent errors partly cancel. On the three hardest 1,600-point cases
         of bench/quality.py, meshed inside their true outline, it gave a 5–18 % lower
@@ -426,12 +442,13 @@ class AdaptiveMLP(BaseEstimator):
         fresh = _build(self.hidden_layers_, self.activation, n_in, n_out, generator)
         candidates = []
         for start, label in ((net, "warm"), (fresh, "fresh")):
-            record = self._train(start, final, self.final_epochs)
+            record = self._train(start, final, self.final_epochs, self.final_patience)
             record.update(layers=self.hidden_layers_, final=label)
             self.history_.append(record)
             candidates.append((record["weighted_mse"], label == "fresh", start))
-        if self.final_fit == "better":
-            return min(candidates, key=lambda c: c[:2])[2]
+        better, worse = sorted(candidates, key=lambda c: c[:2])
+        if self.final_fit == "better" or worse[0] > MEAN_GUARD * better[0]:
+            return better[2]  # one fit stalled: averaging would carry half its error
         return _mean_of(net, fresh)
 
     def _retrain(self, net, tensors, generator):
@@ -439,7 +456,7 @@ class AdaptiveMLP(BaseEstimator):
         n_in, n_out = _linears(net)[0].in_features, _linears(net)[-1].out_features
         fresh = _build(self.hidden_layers_, self.activation, n_in, n_out, generator)
         everything = dict(tensors, train=tensors["all"])
-        record = self._train(fresh, everything, self.final_epochs)
+        record = self._train(fresh, everything, self.final_epochs, self.final_patience)
         record.update(layers=self.hidden_layers_, retrained=True)
         self.history_.append(record)
         return fresh

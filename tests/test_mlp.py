@@ -91,12 +91,16 @@ def test_retrain_on_all_data_is_recorded():
     assert tuple(widths) == model.hidden_layers_  # one retrained net, not a mean
 
 
-def test_the_chosen_net_is_the_mean_of_its_two_final_fits(fitted):
+def test_the_chosen_net_is_the_mean_of_its_two_final_fits_when_they_agree(fitted):
+    from reconstruct.mlp import MEAN_GUARD
+
     model, _, _ = fitted
-    finals = [h["final"] for h in model.history_ if "final" in h]
-    assert finals == ["warm", "fresh"]
+    finals = [h for h in model.history_ if "final" in h]
+    assert [h["final"] for h in finals] == ["warm", "fresh"]
+    errors = sorted(h["weighted_mse"] for h in finals)
     widths = [m.out_features for m in model.torch_model_ if hasattr(m, "out_features")][:-1]
-    assert tuple(widths) == tuple(2 * w for w in model.hidden_layers_)
+    factor = 2 if errors[1] <= MEAN_GUARD * errors[0] else 1
+    assert tuple(widths) == tuple(factor * w for w in model.hidden_layers_)
 
 
 def test_fine_tune_keeps_the_architecture_and_improves_on_new_data(fitted):
@@ -205,6 +209,32 @@ def test_final_fit_better_keeps_one_net_and_bad_values_are_refused():
     assert tuple(widths) == model.hidden_layers_
     with pytest.raises(InvalidInputError, match="final_fit"):
         AdaptiveMLP(final_fit="best", **SMALL).fit(uv, xyz)
+
+
+@pytest.mark.parametrize(("fresh_factor", "mean_kept"), [(1.02, True), (1.5, False)])
+def test_the_mean_is_kept_only_while_the_two_final_fits_agree(monkeypatch, fresh_factor,
+                                                              mean_kept):
+    """A final fit whose weighted error is over 5 % above the other's stalled: keep the other."""
+    import reconstruct.mlp as mlp_module
+
+    train = mlp_module.AdaptiveMLP._train
+
+    def train_with_a_worse_fresh_fit(self, net, tensors, max_epochs=None, patience=None):
+        record = train(self, net, tensors, max_epochs, patience)
+        if max_epochs == self.final_epochs:
+            self._finals = getattr(self, "_finals", 0) + 1
+            if self._finals == 1:
+                self._warm_mse = record["weighted_mse"]
+            else:
+                record["weighted_mse"] = fresh_factor * self._warm_mse
+        return record
+
+    monkeypatch.setattr(mlp_module.AdaptiveMLP, "_train", train_with_a_worse_fresh_fit)
+    uv, xyz = paraboloid(300)
+    model = AdaptiveMLP(random_state=0, **SMALL).fit(uv, xyz)
+    widths = [m.out_features for m in model.torch_model_ if hasattr(m, "out_features")][:-1]
+    factor = 2 if mean_kept else 1
+    assert tuple(widths) == tuple(factor * w for w in model.hidden_layers_)
 
 
 def test_training_early_stops_and_keeps_the_best_validation_weights():

@@ -257,10 +257,10 @@ class IncrementalEngine:
 
 
 def _warm_up() -> None:
-    import reconstruct.mlp
+    import reconstruct.networks
     import reconstruct.pipeline  # noqa: F401  (and torch, onnxruntime)
 
-    reconstruct.mlp._torch()
+    reconstruct.networks.load_torch()
 
 
 def refine(source, lam: float | None = None, depth: int | None = None):

@@ -13,7 +13,8 @@ Stopgap: this reaches into `AdaptiveMLP`'s private steps. The public hook it sta
 
 from __future__ import annotations
 
-from reconstruct.mlp import AdaptiveMLP, _build, _one_torch_thread
+from reconstruct.mlp import AdaptiveMLP
+from reconstruct.networks import build, one_torch_thread
 from reconstruct.surface_map import OnnxSurfaceMap
 
 
@@ -43,8 +44,8 @@ class FixedArchitectureMLP(AdaptiveMLP):
         n_in, n_out = (t.shape[1] for t in tensors["train"])
         self.history_ = []
         self.hidden_layers_ = tuple(int(w) for w in self.hidden_layers)
-        with _one_torch_thread():
-            net = _build(self.hidden_layers_, self.activation, n_in, n_out, generator)
+        with one_torch_thread():
+            net = build(self.hidden_layers_, self.activation, n_in, n_out, generator)
             net = self._train_final(net, tensors, generator)
         self.torch_model_ = net.eval()
         self._store_errors(tensors)

@@ -6,17 +6,15 @@ the weighted train–test error; add a neuron until that error stops improving o
 reached; then open the next layer; return the configuration with the best weighted error,
 optionally retrained on all samples. Hidden activation is selectable, the output layer linear.
 
-Training is full-batch L-BFGS: torch computes the loss and its gradient, scipy's compiled
-L-BFGS-B takes the steps (tiny nets are overhead-bound, so few large steps beat many small ones,
-and a compiled optimiser loop beats a Python one). The chosen configuration is then trained to
-convergence from its searched weights and from a fresh start, and their mean is kept (one MLP
-with the two side by side). That net is exported to ONNX with its normalisation inside;
-`predict` and meshing run on onnxruntime.
+Training is full-batch L-BFGS (`lbfgs.py`: torch computes the loss and its gradient, scipy's
+compiled L-BFGS-B takes the steps) of the nets of `networks.py`. The chosen configuration is
+then trained to convergence from its searched weights and from a fresh start, and their mean
+is kept while the two agree (one MLP with the two side by side). That net is exported to ONNX
+with its normalisation inside; `predict` and meshing run on onnxruntime.
 """
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import io
 import logging
@@ -27,6 +25,8 @@ import numpy as np
 from sklearn.base import BaseEstimator
 
 from .errors import InvalidInputError, NotFittedError
+from .lbfgs import train_lbfgs
+from .networks import build, deepen, linears, load_torch, mean_of, mse, one_torch_thread, widen
 from .surface_map import OnnxSurfaceMap
 
 log = logging.getLogger(__name__)
@@ -38,81 +38,6 @@ SPLIT = (0.85, 0.10, 0.05)  # train, test, validation (the paper's)
 # surface: averaging it in cost up to 1.5× the Chamfer distance of the better fit alone
 # (S-curve, 1,600 points, seeds 1 and 2), and a stalled fresh fit (7× the error) wrecked a mesh.
 MEAN_GUARD = 1.05
-
-
-def _torch():
-    import torch  # training only; inference never imports torch
-
-    return torch
-
-
-def _activation(name: str):
-    nn = _torch().nn
-    return {"tanh": nn.Tanh, "sigmoid": nn.Sigmoid, "relu": nn.ReLU, "elu": nn.ELU,
-            "softplus": nn.Softplus}[name]()
-
-
-def _build(layers: tuple[int, ...], activation: str, n_in: int, n_out: int, generator):
-    """A float64 MLP n_in → layers… → n_out with a linear output, seeded initialisation."""
-    torch = _torch()
-    modules, width = [], n_in
-    for size in layers:
-        modules += [torch.nn.Linear(width, size), _activation(activation)]
-        width = size
-    modules.append(torch.nn.Linear(width, n_out))
-    net = torch.nn.Sequential(*modules).double()
-    with torch.no_grad():
-        for module in net:
-            if isinstance(module, torch.nn.Linear):
-                bound = 1.0 / np.sqrt(module.in_features)
-                module.weight.uniform_(-bound, bound, generator=generator)
-                module.bias.uniform_(-bound, bound, generator=generator)
-    return net
-
-
-def _linears(net):
-    return [m for m in net if isinstance(m, _torch().nn.Linear)]
-
-
-def _widen(net, layers, activation, n_in, n_out, generator):
-    """``net`` plus one neuron in its last hidden layer, by splitting one (Net2WiderNet).
-
-    The busiest neuron (largest outgoing weights) is copied with a small perturbation of its
-    incoming weights and its outgoing weights are shared between the two: the function is kept
-    and the pair can then specialise where the map needs capacity.
-    """
-    torch = _torch()
-    wider = _build(layers, activation, n_in, n_out, generator)
-    old, new = _linears(net), _linears(wider)
-    with torch.no_grad():
-        for a, b in zip(old[:-2], new[:-2], strict=True):  # earlier layers: unchanged
-            b.weight.copy_(a.weight)
-            b.bias.copy_(a.bias)
-        grown, out_old, out_new = old[-2], old[-1], new[-1]
-        k = grown.out_features
-        j = int(torch.argmax(out_old.weight.abs().sum(0)))
-        noise = 0.05 * grown.weight[j].abs().mean() + 1e-3
-        new[-2].weight[:k] = grown.weight
-        new[-2].bias[:k] = grown.bias
-        new[-2].weight[k] = grown.weight[j] + noise * torch.randn(
-            grown.in_features, generator=generator, dtype=grown.weight.dtype)
-        new[-2].bias[k] = grown.bias[j]
-        out_new.weight[:, :k] = out_old.weight
-        out_new.weight[:, j] *= 0.5
-        out_new.weight[:, k] = out_new.weight[:, j]
-        out_new.bias.copy_(out_old.bias)
-    return wider
-
-
-def _deepen(net, layers, activation, n_in, n_out, generator):
-    """A net with one more hidden layer whose earlier layers start from ``net``'s."""
-    torch = _torch()
-    deeper = _build(layers, activation, n_in, n_out, generator)
-    with torch.no_grad():
-        for a, b in zip(_linears(net)[:-1], _linears(deeper)[:-2], strict=True):
-            b.weight.copy_(a.weight)
-            b.bias.copy_(a.bias)
-    return deeper
 
 
 class AdaptiveMLP(BaseEstimator):
@@ -239,20 +164,20 @@ class AdaptiveMLP(BaseEstimator):
         self.history_ = []
         best = None  # (weighted, layers, net)
         previous_layer_net = None
-        with _one_torch_thread():
+        with one_torch_thread():
             for _layer in range(int(self.max_layers)):
                 layer_best, stale, net = None, 0, None
                 for width in range(1, int(self.max_neurons) + 1):
                     layers = (*(best[1] if best else ()), width)  # best earlier layers + 1
                     if self.growth == "fresh":
-                        net = _build(layers, self.activation, n_in, n_out, generator)
+                        net = build(layers, self.activation, n_in, n_out, generator)
                     elif net is None:
-                        net = (_deepen(previous_layer_net, layers, self.activation, n_in, n_out,
+                        net = (deepen(previous_layer_net, layers, self.activation, n_in, n_out,
                                        generator)
                                if previous_layer_net is not None
-                               else _build(layers, self.activation, n_in, n_out, generator))
+                               else build(layers, self.activation, n_in, n_out, generator))
                     else:
-                        net = _widen(net, layers, self.activation, n_in, n_out, generator)
+                        net = widen(net, layers, self.activation, n_in, n_out, generator)
                     record = self._train(net, search)
                     record["layers"] = layers
                     self.history_.append(record)
@@ -263,7 +188,7 @@ class AdaptiveMLP(BaseEstimator):
                     )
                     score = record["weighted_mse"]
                     if layer_best is None or score < layer_best[0] * (1 - self.tol):
-                        layer_best, stale = (score, layers, _copy(net)), 0
+                        layer_best, stale = (score, layers, copy.deepcopy(net)), 0
                     else:
                         stale += 1
                         if stale >= self.neuron_patience:
@@ -294,7 +219,7 @@ class AdaptiveMLP(BaseEstimator):
             raise NotFittedError("fit() the AdaptiveMLP before fine_tune()")
         tensors = self._samples(uv, xyz, np.random.default_rng(self.random_state),
                                 new_normalisation=False)
-        with _one_torch_thread():
+        with one_torch_thread():
             record = self._train(self.torch_model_.train(), tensors, self.final_epochs)
         record["layers"] = self.hidden_layers_
         record["fine_tune"] = True
@@ -312,7 +237,7 @@ class AdaptiveMLP(BaseEstimator):
 
     def predict_torch(self, uv) -> np.ndarray:
         """(n, 2) → (n, 3) through the torch model (reference for the ONNX export)."""
-        torch = _torch()
+        torch = load_torch()
         x = (np.asarray(uv, dtype=np.float64) - self.x_mean_) / self.x_scale_
         with torch.no_grad():
             y = self.torch_model_(torch.from_numpy(x)).numpy()
@@ -322,12 +247,12 @@ class AdaptiveMLP(BaseEstimator):
     def _random(self):
         """(numpy Generator, torch Generator) seeded from ``random_state``, in a fixed order."""
         rng = np.random.default_rng(self.random_state)
-        return rng, _torch().Generator().manual_seed(int(rng.integers(2**31)))
+        return rng, load_torch().Generator().manual_seed(int(rng.integers(2**31)))
 
     def _samples(self, uv, xyz, rng, new_normalisation: bool) -> dict:
         """Checked, normalised samples split 85/10/5: {"train"|"test"|"validation"|"all":
         (x (k, 2), y (k, 3)) tensors}. ``new_normalisation`` fits the scales to these samples."""
-        torch = _torch()
+        torch = load_torch()
         uv, xyz = self._check_data(uv, xyz)
         if new_normalisation:
             self._set_normalisation(uv, xyz)
@@ -364,61 +289,21 @@ class AdaptiveMLP(BaseEstimator):
 
     def _train(self, net, tensors, max_epochs: int | None = None,
                patience: int | None = None) -> dict:
-        """Full-batch L-BFGS with early stopping on validation; keeps the best weights.
-
-        One epoch is ``steps_per_epoch`` L-BFGS iterations (scipy's L-BFGS-B, its curvature
-        history kept across epochs); torch computes the loss and its gradient. scipy's
-        compiled loop costs 1.4–3× less per iteration than ``torch.optim.LBFGS`` on these
-        tiny nets, and it spares the 1.2 s import of ``torch._dynamo`` that torch's optimizers
-        trigger."""
-        from scipy.optimize import minimize
-
+        """Full-batch L-BFGS (`lbfgs.train_lbfgs`) with early stopping on validation; the net
+        keeps its best weights. Returns the record of the run."""
         started = time.perf_counter()
-        xv, yv = tensors["validation"]
-        epochs = int(max_epochs or self.max_epochs)
-        steps = int(self.steps_per_epoch)
-        with _FlatParameters(net) as flat:
-            loss_and_gradient = flat.loss_and_gradient(*tensors["train"])
-            best = {"mse": _mse(net, xv, yv), "theta": flat.get(), "stale": 0, "epochs": 0}
-
-            def end_of_iteration(intermediate_result):
-                nonlocal iterations
-                iterations += 1
-                if iterations % steps:
-                    return
-                best["epochs"] += 1
-                flat.set(intermediate_result.x)
-                val = _mse(net, xv, yv)
-                if not np.isfinite(val):
-                    raise StopIteration
-                if val < best["mse"]:
-                    best.update(mse=val, theta=intermediate_result.x.copy(), stale=0)
-                else:
-                    best["stale"] += 1
-                    if best["stale"] >= (patience or self.patience):
-                        raise StopIteration
-
-            iterations = 0
-            result = minimize(
-                loss_and_gradient, flat.get(), jac=True, method="L-BFGS-B",
-                callback=end_of_iteration,
-                options={"maxiter": epochs * steps, "maxfun": epochs * steps * 5 // 4,
-                         "maxcor": 20, "ftol": 1e-15, "gtol": 1e-10},
-            )
-            if iterations % steps:  # stopped inside an epoch (converged): check where it ended
-                best["epochs"] += 1
-                flat.set(result.x)
-                val = _mse(net, xv, yv)
-                if val < best["mse"]:
-                    best.update(mse=val, theta=result.x.copy())
-            flat.set(best["theta"])
-        train, test = _mse(net, *tensors["train"]), _mse(net, *tensors["test"])
+        best_val, epochs = train_lbfgs(
+            net, tensors["train"], tensors["validation"],
+            max_epochs=int(max_epochs or self.max_epochs),
+            steps_per_epoch=int(self.steps_per_epoch), patience=int(patience or self.patience),
+        )
+        train, test = mse(net, *tensors["train"]), mse(net, *tensors["test"])
         return {
             "train_mse": train,
             "test_mse": test,
-            "validation_mse": best["mse"],
+            "validation_mse": best_val,
             "weighted_mse": (1 - self.test_weight) * train + self.test_weight * test,
-            "epochs": best["epochs"],
+            "epochs": epochs,
             "seconds": time.perf_counter() - started,
         }
 
@@ -433,13 +318,13 @@ class AdaptiveMLP(BaseEstimator):
         Chamfer-L1 than keeping the better fit, whose held-out error mostly measures the noise.
         The search is over, so the held-out test and validation samples together decide the
         early stop (a steadier signal than the 5 % validation split alone)."""
-        torch = _torch()
+        torch = load_torch()
         held_out = tuple(
             torch.cat(pair) for pair in zip(tensors["test"], tensors["validation"], strict=True)
         )
         final = dict(tensors, validation=held_out)
-        n_in, n_out = _linears(net)[0].in_features, _linears(net)[-1].out_features
-        fresh = _build(self.hidden_layers_, self.activation, n_in, n_out, generator)
+        n_in, n_out = linears(net)[0].in_features, linears(net)[-1].out_features
+        fresh = build(self.hidden_layers_, self.activation, n_in, n_out, generator)
         candidates = []
         for start, label in ((net, "warm"), (fresh, "fresh")):
             record = self._train(start, final, self.final_epochs, self.final_patience)
@@ -449,12 +334,12 @@ class AdaptiveMLP(BaseEstimator):
         better, worse = sorted(candidates, key=lambda c: c[:2])
         if self.final_fit == "better" or worse[0] > MEAN_GUARD * better[0]:
             return better[2]  # one fit stalled: averaging would carry half its error
-        return _mean_of(net, fresh)
+        return mean_of(net, fresh)
 
     def _retrain(self, net, tensors, generator):
         """A fresh net of the chosen configuration trained on every sample (the paper's option)."""
-        n_in, n_out = _linears(net)[0].in_features, _linears(net)[-1].out_features
-        fresh = _build(self.hidden_layers_, self.activation, n_in, n_out, generator)
+        n_in, n_out = linears(net)[0].in_features, linears(net)[-1].out_features
+        fresh = build(self.hidden_layers_, self.activation, n_in, n_out, generator)
         everything = dict(tensors, train=tensors["all"])
         record = self._train(fresh, everything, self.final_epochs, self.final_patience)
         record.update(layers=self.hidden_layers_, retrained=True)
@@ -464,11 +349,11 @@ class AdaptiveMLP(BaseEstimator):
     def _store_errors(self, tensors) -> None:
         scale = float(np.mean(self.y_scale_**2))  # back to squared input units (mean over axes)
         for name in ("train", "test", "validation"):
-            setattr(self, f"{name}_error_", _mse(self.torch_model_, *tensors[name]) * scale)
+            setattr(self, f"{name}_error_", mse(self.torch_model_, *tensors[name]) * scale)
 
     def _export(self, net) -> bytes:
         """ONNX bytes of ``x -> net((x - mean) / scale) * y_scale + y_mean``, dynamic batch."""
-        torch = _torch()
+        torch = load_torch()
 
         class Normalised(torch.nn.Module):
             def __init__(self, inner, x_mean, x_scale, y_mean, y_scale):
@@ -496,113 +381,3 @@ class AdaptiveMLP(BaseEstimator):
                 opset_version=17,
             )
         return buffer.getvalue()
-
-
-
-class _FlatParameters:
-    """A net's parameters and gradients as views into two flat float64 buffers, so that
-    scipy's optimisers read and write them without copies per tensor. On exit every parameter
-    gets its own storage back and its gradient is dropped."""
-
-    def __init__(self, net):
-        self.net = net
-        self.params = list(net.parameters())
-
-    def __enter__(self) -> _FlatParameters:
-        torch = _torch()
-        total = sum(p.numel() for p in self.params)
-        self._values = torch.empty(total, dtype=torch.float64)
-        self._grads = torch.zeros(total, dtype=torch.float64)
-        offset = 0
-        with torch.no_grad():
-            for p in self.params:
-                k = p.numel()
-                self._values[offset : offset + k] = p.reshape(-1)
-                p.data = self._values[offset : offset + k].view_as(p)
-                p.grad = self._grads[offset : offset + k].view_as(p)
-                offset += k
-        self.values, self.grads = self._values.numpy(), self._grads.numpy()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        for p in self.params:
-            p.data = p.data.clone()
-            p.grad = None
-
-    def get(self) -> np.ndarray:
-        return self.values.copy()
-
-    def set(self, theta: np.ndarray) -> None:
-        self.values[:] = theta
-
-    def loss_and_gradient(self, x, y):
-        """f(theta) → (mean squared error of net(x) against y, its gradient (p,))."""
-        torch = _torch()
-        net = self.net
-
-        def evaluate(theta):
-            self.values[:] = theta
-            self.grads[:] = 0.0
-            loss = torch.nn.functional.mse_loss(net(x), y)
-            loss.backward()
-            value = loss.item()
-            if not np.isfinite(value):
-                return np.inf, np.zeros_like(self.grads)
-            return value, self.grads.copy()
-
-        return evaluate
-
-
-def _mean_of(first, second):
-    """One MLP computing the mean of two of the same architecture: their hidden layers side by
-    side (block-diagonal weights), the output layer halved. A plain ``Sequential``, so it
-    trains, pickles and exports like any other net."""
-    torch = _torch()
-    modules = []
-    pairs = list(zip(first, second, strict=True))
-    linear_ids = [i for i, (m, _) in enumerate(pairs) if isinstance(m, torch.nn.Linear)]
-    with torch.no_grad():
-        for i, (a, b) in enumerate(pairs):
-            if not isinstance(a, torch.nn.Linear):
-                modules.append(copy.deepcopy(a))
-                continue
-            if i == linear_ids[0]:
-                weight = torch.cat([a.weight, b.weight])
-                bias = torch.cat([a.bias, b.bias])
-            elif i == linear_ids[-1]:
-                weight = 0.5 * torch.cat([a.weight, b.weight], dim=1)
-                bias = 0.5 * (a.bias + b.bias)
-            else:
-                weight = torch.block_diag(a.weight, b.weight)
-                bias = torch.cat([a.bias, b.bias])
-            layer = torch.nn.Linear(weight.shape[1], weight.shape[0]).double()
-            layer.weight.copy_(weight)
-            layer.bias.copy_(bias)
-            modules.append(layer)
-    return torch.nn.Sequential(*modules)
-
-
-def _mse(net, x, y) -> float:
-    torch = _torch()
-    with torch.no_grad():
-        return float(torch.mean((net(x) - y) ** 2))
-
-
-def _state(net) -> dict:
-    return {k: v.detach().clone() for k, v in net.state_dict().items()}
-
-
-def _copy(net):
-    return copy.deepcopy(net)
-
-
-@contextlib.contextmanager
-def _one_torch_thread():
-    """Tiny nets on shared cores: one thread is faster and stable (measured 10–50× swings)."""
-    torch = _torch()
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)

@@ -190,7 +190,8 @@ def test_the_split_is_85_10_5_disjoint_with_two_held_out_samples_at_least(n):
 def test_the_final_net_is_the_mean_of_two_fits_as_one_mlp(layers):
     import torch
 
-    from reconstruct.mlp import _build, _mean_of
+    from reconstruct.networks import build as _build
+    from reconstruct.networks import mean_of as _mean_of
 
     generator = torch.Generator().manual_seed(0)
     a, b = (_build(layers, "tanh", 2, 3, generator) for _ in range(2))
@@ -240,7 +241,8 @@ def test_the_mean_is_kept_only_while_the_two_final_fits_agree(monkeypatch, fresh
 def test_training_early_stops_and_keeps_the_best_validation_weights():
     """One `_train` call: the net comes back with its own storage, at the weights of its best
     validation error, and stops after `patience` epochs without improvement."""
-    from reconstruct.mlp import _build, _mse
+    from reconstruct.networks import build as _build
+    from reconstruct.networks import mse as _mse
 
     uv, xyz = paraboloid(400, sigma=0.5)
     mlp = AdaptiveMLP(max_epochs=60, patience=2, random_state=0)

@@ -1,0 +1,134 @@
+"""The small torch MLPs the adaptive search trains: building, growing, averaging, scoring.
+
+Nets are plain float64 ``torch.nn.Sequential`` stacks of Linear and activation layers with a
+linear output, so that they train, pickle and export to ONNX alike.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+
+import numpy as np
+
+
+def load_torch():
+    import torch  # training only; inference never imports torch
+
+    return torch
+
+
+def activation_layer(name: str):
+    nn = load_torch().nn
+    return {"tanh": nn.Tanh, "sigmoid": nn.Sigmoid, "relu": nn.ReLU, "elu": nn.ELU,
+            "softplus": nn.Softplus}[name]()
+
+
+def build(layers: tuple[int, ...], activation: str, n_in: int, n_out: int, generator):
+    """A float64 MLP n_in → layers… → n_out with a linear output, seeded initialisation."""
+    torch = load_torch()
+    modules, width = [], n_in
+    for size in layers:
+        modules += [torch.nn.Linear(width, size), activation_layer(activation)]
+        width = size
+    modules.append(torch.nn.Linear(width, n_out))
+    net = torch.nn.Sequential(*modules).double()
+    with torch.no_grad():
+        for module in net:
+            if isinstance(module, torch.nn.Linear):
+                bound = 1.0 / np.sqrt(module.in_features)
+                module.weight.uniform_(-bound, bound, generator=generator)
+                module.bias.uniform_(-bound, bound, generator=generator)
+    return net
+
+
+def linears(net):
+    return [m for m in net if isinstance(m, load_torch().nn.Linear)]
+
+
+def widen(net, layers, activation, n_in, n_out, generator):
+    """``net`` plus one neuron in its last hidden layer, by splitting one (Net2WiderNet).
+
+    The busiest neuron (largest outgoing weights) is copied with a small perturbation of its
+    incoming weights and its outgoing weights are shared between the two: the function is kept
+    and the pair can then specialise where the map needs capacity.
+    """
+    torch = load_torch()
+    wider = build(layers, activation, n_in, n_out, generator)
+    old, new = linears(net), linears(wider)
+    with torch.no_grad():
+        for a, b in zip(old[:-2], new[:-2], strict=True):  # earlier layers: unchanged
+            b.weight.copy_(a.weight)
+            b.bias.copy_(a.bias)
+        grown, out_old, out_new = old[-2], old[-1], new[-1]
+        k = grown.out_features
+        j = int(torch.argmax(out_old.weight.abs().sum(0)))
+        noise = 0.05 * grown.weight[j].abs().mean() + 1e-3
+        new[-2].weight[:k] = grown.weight
+        new[-2].bias[:k] = grown.bias
+        new[-2].weight[k] = grown.weight[j] + noise * torch.randn(
+            grown.in_features, generator=generator, dtype=grown.weight.dtype)
+        new[-2].bias[k] = grown.bias[j]
+        out_new.weight[:, :k] = out_old.weight
+        out_new.weight[:, j] *= 0.5
+        out_new.weight[:, k] = out_new.weight[:, j]
+        out_new.bias.copy_(out_old.bias)
+    return wider
+
+
+def deepen(net, layers, activation, n_in, n_out, generator):
+    """A net with one more hidden layer whose earlier layers start from ``net``'s."""
+    torch = load_torch()
+    deeper = build(layers, activation, n_in, n_out, generator)
+    with torch.no_grad():
+        for a, b in zip(linears(net)[:-1], linears(deeper)[:-2], strict=True):
+            b.weight.copy_(a.weight)
+            b.bias.copy_(a.bias)
+    return deeper
+
+
+def mean_of(first, second):
+    """One MLP computing the mean of two of the same architecture: their hidden layers side by
+    side (block-diagonal weights), the output layer halved. A plain ``Sequential``, so it
+    trains, pickles and exports like any other net."""
+    torch = load_torch()
+    modules = []
+    pairs = list(zip(first, second, strict=True))
+    linear_ids = [i for i, (m, _) in enumerate(pairs) if isinstance(m, torch.nn.Linear)]
+    with torch.no_grad():
+        for i, (a, b) in enumerate(pairs):
+            if not isinstance(a, torch.nn.Linear):
+                modules.append(copy.deepcopy(a))
+                continue
+            if i == linear_ids[0]:
+                weight = torch.cat([a.weight, b.weight])
+                bias = torch.cat([a.bias, b.bias])
+            elif i == linear_ids[-1]:
+                weight = 0.5 * torch.cat([a.weight, b.weight], dim=1)
+                bias = 0.5 * (a.bias + b.bias)
+            else:
+                weight = torch.block_diag(a.weight, b.weight)
+                bias = torch.cat([a.bias, b.bias])
+            layer = torch.nn.Linear(weight.shape[1], weight.shape[0]).double()
+            layer.weight.copy_(weight)
+            layer.bias.copy_(bias)
+            modules.append(layer)
+    return torch.nn.Sequential(*modules)
+
+
+def mse(net, x, y) -> float:
+    torch = load_torch()
+    with torch.no_grad():
+        return float(torch.mean((net(x) - y) ** 2))
+
+
+@contextlib.contextmanager
+def one_torch_thread():
+    """Tiny nets on shared cores: one thread is faster and stable (measured 10–50× swings)."""
+    torch = load_torch()
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)

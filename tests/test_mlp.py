@@ -44,7 +44,7 @@ def test_onnx_equals_torch_within_1e_5(fitted):
 
 def test_search_follows_the_paper(fitted):
     model, _, _ = fitted
-    searched = [h["layers"] for h in model.history_ if "final" not in h]
+    searched = [h["layers"] for h in model.history_ if "final" not in h and "retry" not in h]
     assert searched[0] == (1,)  # one hidden layer of one neuron first
     widths = [layers[0] for layers in searched if len(layers) == 1]
     assert widths == list(range(1, len(widths) + 1))  # then one neuron at a time
@@ -236,6 +236,56 @@ def test_the_mean_is_kept_only_while_the_two_final_fits_agree(monkeypatch, fresh
     widths = [m.out_features for m in model.torch_model_ if hasattr(m, "out_features")][:-1]
     factor = 2 if mean_kept else 1
     assert tuple(widths) == tuple(factor * w for w in model.hidden_layers_)
+
+
+def scripted_search(monkeypatch, scores):
+    """Make the search's weighted errors ``scores[layers]`` (a list: one per start)."""
+    import reconstruct.mlp as mlp_module
+
+    train = mlp_module.AdaptiveMLP._train
+    starts = {}
+
+    def train_scripted(self, net, tensors, max_epochs=None, patience=None):
+        record = train(self, net, tensors, 2 if max_epochs is None else max_epochs, patience)
+        if max_epochs is None:  # a searched configuration
+            layers = tuple(m.out_features for m in net if hasattr(m, "out_features"))[:-1]
+            run = starts[layers] = starts.get(layers, -1) + 1
+            record["weighted_mse"] = scores[layers][min(run, len(scores[layers]) - 1)]
+        return record
+
+    monkeypatch.setattr(mlp_module.AdaptiveMLP, "_train", train_scripted)
+
+
+def test_a_configuration_far_above_its_layer_best_gets_a_second_start(monkeypatch):
+    """(3,) lands in a poor local minimum (10× the error of (2,)): one more start, and the
+    better one counts, so the layer goes on to (4,) and (5,)."""
+    scripted_search(monkeypatch, {(1,): [1.0], (2,): [0.5], (3,): [5.0, 0.3], (4,): [0.2],
+                                  (5,): [0.1], (6,): [0.15]})
+    uv, xyz = paraboloid(200)
+    model = AdaptiveMLP(max_layers=1, max_neurons=6, near_best=0, neuron_patience=1,
+                        final_epochs=2, random_state=0).fit(uv, xyz)
+    searched = [(h["layers"], h.get("retry", False)) for h in model.history_ if "final" not in h]
+    assert searched == [((1,), False), ((2,), False), ((3,), False), ((3,), True),
+                        ((4,), False), ((5,), False), ((6,), False)]
+    assert model.hidden_layers_ == (5,)
+    with pytest.raises(InvalidInputError, match="retry_factor"):
+        AdaptiveMLP(retry_factor=1.0).fit(uv, xyz)
+
+
+@pytest.mark.parametrize(("near_best", "chosen"), [(0.0, (3,)), (1.0, (5,))])
+def test_of_the_configurations_near_the_lowest_error_the_largest_is_chosen(
+    monkeypatch, near_best, chosen
+):
+    """(3,), (4,) and (5,) are within 10 % of each other, less than one standard error of an
+    MSE on the 20 test samples (32 %): their differences are the noise."""
+    scripted_search(monkeypatch, {(1,): [1.0], (2,): [0.5], (3,): [0.1], (4,): [0.105],
+                                  (5,): [0.11], (6,): [0.2]})
+    uv, xyz = paraboloid(200)
+    model = AdaptiveMLP(max_layers=1, max_neurons=6, near_best=near_best, final_epochs=2,
+                        random_state=0).fit(uv, xyz)
+    assert model.hidden_layers_ == chosen
+    with pytest.raises(InvalidInputError, match="near_best"):
+        AdaptiveMLP(near_best=-1).fit(uv, xyz)
 
 
 def test_training_early_stops_and_keeps_the_best_validation_weights():

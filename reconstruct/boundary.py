@@ -24,8 +24,12 @@ Robustness and speed: outliers (sparse neighbourhoods) are never corners or path
 an outer band of points enters the graphs, and each wedge is tried first on a thin outer band
 (2 spacings), where a sparse outer point's nearest neighbours are other outer points rather
 than the denser interior. A wedge whose corners are not connected falls back to all its points,
-to 4k neighbours, then to a straight segment (empty sectors simply have no corner). The depths
-are merged into one loop by each point's arc-length position projected onto the outermost loop.
+to 4k neighbours, then to a straight segment (empty sectors simply have no corner). The graphs
+also hold the Delaunay edges up to 3 spacings long: where the outline meets the rays from the
+centroid at a grazing angle (the arch that Isomap makes of a half torus), an outer point's k
+nearest neighbours can all lie inwards, and a kNN graph alone then cuts the corner. The depths
+are merged into one loop by each point's arc-length position projected onto the outermost loop;
+a deeper point more than 2 spacings per depth inside it is dropped (its path cut across).
 This is a star-shaped view from the centroid: a C-shaped region is closed across its mouth.
 """
 
@@ -36,7 +40,7 @@ import logging
 import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
-from scipy.spatial import cKDTree
+from scipy.spatial import Delaunay, QhullError, cKDTree
 from sklearn.base import BaseEstimator
 
 from .errors import DegenerateCloudError, InvalidInputError
@@ -45,6 +49,8 @@ log = logging.getLogger(__name__)
 
 #: Thickness, in point spacings, of the outer band whose kNN graph is tried first at each depth.
 _OUTER = 2.0
+#: Longest Delaunay edge, in point spacings, added to the paths' kNN graphs.
+_REACH = 3.0
 
 
 class MultiDepthBoundary(BaseEstimator):
@@ -61,6 +67,9 @@ class MultiDepthBoundary(BaseEstimator):
         lone far point cannot drag the boundary out. None keeps every point.
     band_factor : only points within ``band_factor * (depth + 1)`` point spacings below the
         envelope polygon enter the graphs (fast at 100k points); None uses every inlier.
+    max_inset : a point of depth d lying over ``(d - 1) * max_inset`` point spacings inside the
+        first loop is not an interpolant: the deeper path cut a corner through the interior
+        there, and merged in it would pull a notch into the spline.
 
     Fitted: ``points_ (k, 2)`` interpolants ordered along the outermost loop (counter-clockwise),
     ``indices_ (k,)`` into the input, ``depth_paths_`` list of (k_d,) index loops per depth,
@@ -78,6 +87,7 @@ class MultiDepthBoundary(BaseEstimator):
         n_neighbors: int = 8,
         density_factor: float | None = 4.0,
         band_factor: float | None = 3.0,
+        max_inset: float = 2.0,
     ):
         self.depth = depth
         self.n_corners = n_corners
@@ -86,6 +96,7 @@ class MultiDepthBoundary(BaseEstimator):
         self.n_neighbors = n_neighbors
         self.density_factor = density_factor
         self.band_factor = band_factor
+        self.max_inset = max_inset
 
     def fit(self, uv) -> MultiDepthBoundary:
         """uv : (m, 2) float embedding, any scale. Returns self."""
@@ -119,7 +130,8 @@ class MultiDepthBoundary(BaseEstimator):
             inward = geometry.depth_below(ids, remaining)
             outer = inward <= _OUTER * spacing
             loop = _trace_loop(
-                uv[ids], geometry.theta[ids], inward, outer, corners, self.c1, self.c2, k
+                uv[ids], geometry.theta[ids], inward, outer, corners, self.c1, self.c2, k,
+                _REACH * spacing,
             )
             paths.append(ids[loop])
             corner_ids.append(ids[corners])
@@ -129,7 +141,7 @@ class MultiDepthBoundary(BaseEstimator):
                 "no boundary loop: the embedded points span fewer than 3 angular sectors"
             )
 
-        self.indices_ = _order_along_first(uv, paths)
+        self.indices_ = _order_along_first(uv, paths, self.max_inset * geometry.spacing)
         self.points_ = uv[self.indices_]
         self.depth_paths_ = paths
         self.corner_indices_ = corner_ids
@@ -159,6 +171,8 @@ class MultiDepthBoundary(BaseEstimator):
             raise InvalidInputError(f"density_factor must be > 1, got {self.density_factor}")
         if self.band_factor is not None and not self.band_factor > 0:
             raise InvalidInputError(f"band_factor must be > 0, got {self.band_factor}")
+        if not self.max_inset > 0:
+            raise InvalidInputError(f"max_inset must be > 0, got {self.max_inset}")
 
 
 class PCABoundary(BaseEstimator):
@@ -197,7 +211,8 @@ class PCABoundary(BaseEstimator):
         inward = geometry.depth_below(ids, band)
         outer = inward <= _OUTER * geometry.spacing
         theta = geometry.theta[ids]
-        loop = _trace_loop(uv[ids], theta, inward, outer, local, 1.0, self.c2, self.n_neighbors)
+        loop = _trace_loop(uv[ids], theta, inward, outer, local, 1.0, self.c2, self.n_neighbors,
+                           _REACH * geometry.spacing)
         loop = ids[loop]
         self.indices_ = loop
         self.points_ = uv[loop]
@@ -288,7 +303,7 @@ def _sector_corners(theta: np.ndarray, r: np.ndarray, n_corners: int) -> np.ndar
     return corners[np.argsort(theta[corners], kind="stable")]
 
 
-def _trace_loop(xy, theta, inward, outer, corners, c1, c2, k) -> np.ndarray:
+def _trace_loop(xy, theta, inward, outer, corners, c1, c2, k, reach) -> np.ndarray:
     """Closed loop (local indices) of shortest paths between consecutive corners, each over the
     points of the wedge between the two corners' angles.
 
@@ -309,7 +324,7 @@ def _trace_loop(xy, theta, inward, outer, corners, c1, c2, k) -> np.ndarray:
         path = None
         for members, kk in ((inner[outer[inner]], k), (inner, k), (inner, 4 * k)):
             members = np.concatenate([[start], members, [end]])
-            path = _dijkstra_path(xy[members], inward[members], c1, c2, kk)
+            path = _dijkstra_path(xy[members], inward[members], c1, c2, kk, reach)
             if path is not None:
                 break
         if path is None:
@@ -320,16 +335,27 @@ def _trace_loop(xy, theta, inward, outer, corners, c1, c2, k) -> np.ndarray:
     return np.concatenate(loop).astype(np.int64)
 
 
-def _dijkstra_path(points, inward, c1, c2, k) -> np.ndarray | None:
-    """Cheapest path from point 0 to the last point on the symmetric kNN graph, or None."""
+def _dijkstra_path(points, inward, c1, c2, k, reach) -> np.ndarray | None:
+    """Cheapest path from point 0 to the last point, or None: over the symmetric kNN graph plus
+    the Delaunay edges no longer than ``reach``. Along the outline the k nearest neighbours of
+    a point can all lie inwards, leaving a gap between two outer points that only an inward
+    detour crosses; their Delaunay edge bridges it (the length cap keeps concave bays open)."""
     n = len(points)
     k = min(k, n - 1)
     dist, nbr = cKDTree(points).query(points, k=k + 1)
-    src = np.repeat(np.arange(n), k)
-    pairs, first = np.unique(
-        np.sort(np.column_stack([src, nbr[:, 1:].ravel()]), axis=1), axis=0, return_index=True
-    )
-    length = dist[:, 1:].ravel()[first]
+    pairs = np.column_stack([np.repeat(np.arange(n), k), nbr[:, 1:].ravel()])
+    if reach > 0 and n >= 4:
+        try:
+            simplices = Delaunay(points).simplices
+        except QhullError:  # collinear or coincident members: the kNN graph alone
+            simplices = np.empty((0, 3), dtype=np.int64)
+        sides = simplices[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+        short = np.hypot(*(points[sides[:, 0]] - points[sides[:, 1]]).T) <= reach
+        pairs = np.vstack([pairs, sides[short]])
+    low, high = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
+    key = np.unique((low * n + high)[low != high])  # each undirected edge once
+    pairs = np.column_stack([key // n, key % n])
+    length = np.hypot(*(points[pairs[:, 0]] - points[pairs[:, 1]]).T)
     tail = np.concatenate([pairs[:, 0], pairs[:, 1]])
     head = np.concatenate([pairs[:, 1], pairs[:, 0]])
     step = np.concatenate([length, length])
@@ -345,9 +371,11 @@ def _dijkstra_path(points, inward, c1, c2, k) -> np.ndarray | None:
     return np.array(path[::-1])
 
 
-def _order_along_first(uv: np.ndarray, paths: list[np.ndarray]) -> np.ndarray:
+def _order_along_first(uv: np.ndarray, paths: list[np.ndarray], max_inset: float) -> np.ndarray:
     """Indices of all paths sorted by the arc-length position of their projection onto the
-    first (outermost) loop, so that deeper points interleave into one consistent closed order."""
+    first (outermost) loop, so that deeper points interleave into one consistent closed order.
+    A point of depth d further than ``(d - 1) * max_inset`` inside the first loop is left out:
+    there the deeper path cut through the interior rather than run beside the first."""
     ref = uv[paths[0]]
     seg = np.roll(ref, -1, axis=0) - ref
     seg_len = np.hypot(seg[:, 0], seg[:, 1])
@@ -365,6 +393,11 @@ def _order_along_first(uv: np.ndarray, paths: list[np.ndarray]) -> np.ndarray:
         pick = gap.argmin(axis=0)
         chosen = options[pick, np.arange(len(p))]
         position.append(start[chosen] + t[pick, np.arange(len(p))] * seg_len[chosen])
+        inset = gap[pick, np.arange(len(p))]
+    else:
+        inset = np.empty(0)
     level = np.concatenate([np.full(len(q), i) for i, q in enumerate(paths)])
-    order = np.lexsort((level, np.concatenate(position)))
-    return np.concatenate(paths)[order]
+    first = len(paths[0])
+    keep = np.concatenate([np.ones(first, dtype=bool), inset <= level[first:] * max_inset])
+    order = np.lexsort((level[keep], np.concatenate(position)[keep]))
+    return np.concatenate(paths)[keep][order]

@@ -41,7 +41,10 @@ def test_noisy_disc_interpolants_ring_the_rim(depth):
 
     assert len(model.depth_paths_) == depth
     np.testing.assert_array_equal(model.points_, uv[model.indices_])
-    assert sorted(model.indices_) == sorted(np.concatenate(model.depth_paths_))
+    # Every point of the first loop, and those of the deeper loops that run beside it.
+    assert set(model.depth_paths_[0]) <= set(model.indices_) <= set(
+        np.concatenate(model.depth_paths_)
+    )
     assert len(np.unique(model.indices_)) == len(model.indices_), "depths are disjoint"
     r = np.hypot(*(model.points_ - model.centroid_).T) / radius
     assert abs(r.mean() - 1) < 0.035
@@ -181,3 +184,36 @@ def test_the_outer_loop_follows_the_long_sides_of_an_elongated_region(seed):
     loop = MultiDepthBoundary(depth=1).fit(uv).depth_paths_[0]
     assert shapely.Polygon(uv[loop]).area > 0.915 * rect.area
     assert shapely.distance(rect.exterior, shapely.points(uv[loop])).max() < 3 * spacing
+
+
+def test_paths_bridge_gaps_between_outer_points_that_knn_misses():
+    """Outer points 2.5 grid spacings apart, above a dense grid: each one's 8 nearest
+    neighbours are grid points, so the kNN graph alone detours inwards; the short Delaunay
+    edges along the outside keep the path on the outer row."""
+    from reconstruct.boundary import _dijkstra_path
+
+    gx, gy = np.meshgrid(np.arange(0, 2.01, 0.1), np.arange(-1.0, 0.001, 0.1))
+    grid = np.column_stack([gx.ravel(), gy.ravel()])
+    row = np.column_stack([np.arange(0, 2.01, 0.25), np.full(9, 0.05)])
+    points = np.vstack([row[:1], row[1:-1], grid, row[-1:]])
+    inward = np.concatenate([np.zeros(8), 0.05 - grid[:, 1], [0.0]])
+    with_delaunay = _dijkstra_path(points, inward, 1.0, 1.0, 8, reach=0.3)
+    assert list(with_delaunay) == [0, *range(1, 8), len(points) - 1]
+    knn_only = _dijkstra_path(points, inward, 1.0, 1.0, 8, reach=0.0)
+    assert np.any((knn_only > 7) & (knn_only < len(points) - 1))  # through the grid
+
+
+def test_a_deeper_point_far_inside_the_first_loop_is_no_interpolant():
+    from reconstruct.boundary import _order_along_first
+
+    t = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    outer, inner = np.column_stack([np.cos(t), np.sin(t)]), 0.95 * np.column_stack(
+        [np.cos(t + 0.05), np.sin(t + 0.05)]
+    )
+    inner[10] *= 0.5  # a detour through the interior
+    uv = np.vstack([outer, inner])
+    order = _order_along_first(uv, [np.arange(40), np.arange(40, 80)], max_inset=0.1)
+    assert 50 not in order and len(order) == 79
+    assert set(range(40)) <= set(order)
+    with pytest.raises(InvalidInputError, match="max_inset"):
+        MultiDepthBoundary(max_inset=0).fit(uv)

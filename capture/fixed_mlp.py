@@ -52,8 +52,3 @@ class FixedArchitectureMLP(AdaptiveMLP):
         self.surface_map_ = OnnxSurfaceMap(self._export(net))
         return self
 
-
-def n_parameters(layers, n_in: int = 2, n_out: int = 3) -> int:
-    """Weights and biases of an n_in → layers… → n_out MLP."""
-    widths = [n_in, *layers, n_out]
-    return sum((a + 1) * b for a, b in zip(widths[:-1], widths[1:], strict=True))

@@ -24,9 +24,9 @@ import time
 import numpy as np
 import trimesh
 
+from reconstruct.networks import n_parameters
 from reconstruct.pipeline import SurfaceReconstructor
 
-from .fixed_mlp import n_parameters
 from .patches import PatchReconstructor
 from .plan import ReconstructionParams
 from .warm_start import fit_patch

@@ -22,7 +22,6 @@ with its normalisation inside; `predict` and meshing run on onnxruntime.
 
 from __future__ import annotations
 
-import copy
 import io
 import logging
 import time
@@ -33,7 +32,17 @@ from sklearn.base import BaseEstimator
 
 from .errors import InvalidInputError, NotFittedError
 from .lbfgs import train_lbfgs
-from .networks import build, deepen, linears, load_torch, mean_of, mse, one_torch_thread, widen
+from .networks import (
+    build,
+    deepen,
+    linears,
+    load_torch,
+    mean_of,
+    mse,
+    n_parameters,
+    one_torch_thread,
+    widen,
+)
 from .surface_map import OnnxSurfaceMap
 
 log = logging.getLogger(__name__)
@@ -204,10 +213,10 @@ class AdaptiveMLP(BaseEstimator):
                         if again["weighted_mse"] < record["weighted_mse"]:
                             net, record = retry, again
                     score = record["weighted_mse"]
-                    tried.append((score, sum(p.numel() for p in net.parameters()), layers,
-                                  copy.deepcopy(net)))
+                    # kept as is: growing builds a new net, the search never trains this again
+                    tried.append((score, n_parameters(layers, n_in, n_out), layers, net))
                     if layer_best is None or score < layer_best[0] * (1 - self.tol):
-                        layer_best, stale = (score, layers, tried[-1][3]), 0
+                        layer_best, stale = (score, layers, net), 0
                     else:
                         stale += 1
                         if stale >= self.neuron_patience:

@@ -42,6 +42,12 @@ def build(layers: tuple[int, ...], activation: str, n_in: int, n_out: int, gener
     return net
 
 
+def n_parameters(layers, n_in: int = 2, n_out: int = 3) -> int:
+    """Weights and biases of an n_in → layers… → n_out MLP."""
+    widths = [n_in, *layers, n_out]
+    return sum((a + 1) * b for a, b in zip(widths[:-1], widths[1:], strict=True))
+
+
 def linears(net):
     return [m for m in net if isinstance(m, load_torch().nn.Linear)]
 

@@ -5,7 +5,7 @@
 
 ``transport=url`` (default) reaches an in-process firmware through pyserial's ``simgrbl://``
 handler; ``transport=pty`` serves it on a pseudo-terminal that the driver opens like a USB adapter.
-Firmware parameters: see `sim.grbl_firmware.URL_OPTIONS` (``instant``, ``max_rate``, ``accel``,
+Firmware parameters: see `sim.grbl_options.URL_OPTIONS` (``instant``, ``max_rate``, ``accel``,
 ``steps``, ``homing`` and the fault knobs); the driver's own (``feed``, ``timeout``, ``poll``,
 ``margin``, ``axis``…) pass through to `drivers.grbl.GrblTurntable`. The firmware is the station's
 angle source, so a simulated camera on the same station renders the table's true angle.
@@ -20,7 +20,8 @@ import urllib.parse
 
 from drivers.errors import InvalidDeviceURL
 from drivers.grbl import GrblTurntable
-from sim.grbl_firmware import GrblFirmware, firmware_options, station_firmware
+from sim.grbl_firmware import GrblFirmware
+from sim.grbl_options import firmware_options, station_firmware
 from sim.serial_ports import URL_SCHEME, PtyTransport
 from sim.station import get_station
 

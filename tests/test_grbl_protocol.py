@@ -22,15 +22,10 @@ from drivers.grbl_protocol import (
     parse_setting,
     parse_status,
 )
-from sim.grbl_firmware import (
-    BANNER,
-    LOCK_MESSAGE,
-    GrblFirmware,
-    Profile,
-    firmware_options,
-    normalize_line,
-    station_firmware,
-)
+from sim.grbl_firmware import BANNER, LOCK_MESSAGE, GrblFirmware
+from sim.grbl_gcode import normalize_line
+from sim.grbl_motion import Profile
+from sim.grbl_options import firmware_options, station_firmware
 from sim.station import get_station, reset_stations
 
 # ---------------------------------------------------------------- status reports (GRBL.md shapes)
@@ -311,7 +306,8 @@ def test_homing_lock_and_cycle(clock):
     talk(firmware)
     assert talk(firmware, b"G0 X1\n") == ["error:9"]
     assert talk(firmware, b"$H\n") == ["ok"]
-    assert firmware.state == "Idle" and firmware.position_degrees() == 0
+    assert firmware.state == "Idle"
+    assert firmware.position_degrees() == -1  # GRBL: -$27 (pull-off) once homed, $23=0
 
 
 def test_units_distance_modes_and_steps(clock):

@@ -65,6 +65,8 @@ class GrblFirmware:
     max_rate : $110-$112, degrees/min.  acceleration : $120-$122, degrees/s².
     steps_per_degree : $100-$102.  homing : $22 (starts locked; ``$H`` runs ``homing_cycles``,
     stock ``"Z,XY"``, and needs a switch on every axis it homes: ``switches``).
+    power_on_angle : the table's true angle when the board powers up at machine position 0
+    (the homing switches close at true angles 0 mod 360).
     time_scale : motion runs this many times faster than the wall clock.
     reset_ok_rate : fraction of resets during a ``G4 P0`` wait that answer its ``ok`` first
     (real 1.1h: 8 of 30), drawn from ``random_state``. garble_status_every : every N-th status
@@ -81,6 +83,7 @@ class GrblFirmware:
         homing: bool = False,
         homing_cycles: str = ",".join(STOCK_CYCLES),
         switches: str = "XYZ",
+        power_on_angle: float = 0.0,
         time_scale: float = 1.0,
         reset_ok_rate: float = 0.25,
         unplug_after_moves: int | None = None,
@@ -106,6 +109,7 @@ class GrblFirmware:
             self.settings[110 + i] = float(max_rate)
             self.settings[120 + i] = float(acceleration)
         self.settings[22] = int(bool(homing))
+        self.offset = np.full(3, float(power_on_angle))
         self.time_scale = float(time_scale)
         self.reset_ok_rate = float(reset_ok_rate)
         self.unplug_after_moves = unplug_after_moves
@@ -244,11 +248,13 @@ class GrblFirmware:
             self._alarm(code, now)
 
     def position_degrees(self, axis: str = "X") -> float:
-        """The table's true machine angle now (whole steps), from the motion profile."""
+        """The table's true angle now (whole steps), from the motion profile: the machine
+        position plus ``power_on_angle`` until a homing cycle finds the switch at 0 (mod 360)."""
         with self._lock:
             now = self._clock()
             self._service(now)
-            return float(self.motion.quantize(self.motion.position(now))["XYZ".index(axis)])
+            i = "XYZ".index(axis)
+            return float(self.motion.quantize(self.motion.position(now))[i] + self.offset[i])
 
     @property
     def state(self) -> str:
@@ -516,13 +522,16 @@ class GrblFirmware:
         if not self.settings[22]:
             return 5
         self.motion.state, self._pins = "Idle", ""
-        homed = plan_homing(self.motion, self.homing_cycles, self.switches, now)
+        plan = plan_homing(self.motion, self.homing_cycles, self.switches, now, self.offset)
         self._homing = True
-        if homed is None:
+        if plan is None:
             self._busy = lambda t: False  # the main loop is in the cycle until the alarm
             return _DEFERRED  # the search ends in ALARM:9 and a reset: no answer
 
+        homed, offset = plan
+
         def finish():
+            self.offset = offset
             self.motion.pos = homed.copy()
             self.motion.planned = homed.copy()
             self._homing = False

@@ -32,9 +32,11 @@ def parse_cycles(text: str) -> tuple[str, ...]:
     return cycles
 
 
-def plan_homing(motion: MotionModel, cycles, switches: str, now: float) -> np.ndarray | None:
-    """Queue the homing blocks; the (3,) machine position once homed, or None if the cycle
-    ends in ALARM:9 (the alarm is queued as the failing search's end event)."""
+def plan_homing(motion: MotionModel, cycles, switches: str, now: float,
+                offset: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Queue the homing blocks. ``offset`` (3,): the table's true angle minus its machine
+    position. Returns the (3,) machine position once homed and the new offset, or None if the
+    cycle ends in ALARM:9 (the alarm is queued as the failing search's end event)."""
     s = motion.settings
     pos = motion.planned.copy()
     homed = pos.copy()
@@ -44,7 +46,7 @@ def plan_homing(motion: MotionModel, cycles, switches: str, now: float) -> np.nd
         direction = {i: -1.0 if int(s[23]) >> i & 1 else 1.0 for i in axes}
         search = SEARCH_SCALAR * max(s[130 + i] for i in axes)
         rate = math.sqrt(len(axes))
-        to_switch = {i: (-pos[i] * direction[i]) % 360.0 for i in axes}
+        to_switch = {i: (-(pos[i] + offset[i]) * direction[i]) % 360.0 for i in axes}
         found = all("XYZ"[i] in switches and to_switch[i] <= search for i in axes)
         target = pos.copy()
         for i in axes:
@@ -64,5 +66,5 @@ def plan_homing(motion: MotionModel, cycles, switches: str, now: float) -> np.nd
         pos = pulled
         for i in axes:
             homed[i] = -s[27] if direction[i] > 0 else -s[130 + i] + s[27]
-    return homed
+    return homed, pos + offset - homed
 

@@ -31,6 +31,7 @@ URL_OPTIONS = {
     "homing_cycles": ("homing_cycles", str),
     "switches": ("switches", str),
     "time_scale": ("time_scale", float),
+    "power_on_angle": ("power_on_angle", float),
     "reset_ok_rate": ("reset_ok_rate", float),
     "garble_status_every": ("garble_status_every", int),
     "unplug_after_moves": ("unplug_after_moves", int),

@@ -21,6 +21,9 @@ driver's own record of stops and resets, never by the order of the lines: GRBL m
 ``G4 P0``'s ``ok`` before the ``ALARM:3`` of a reset. `stop` is a feed hold (``!``), then, once
 ``Hold:0``, a reset that keeps the position; `emergency_stop` resets at once. Moves leave GRBL
 in the distance mode they used (``move_by`` G91): lines of your own should set theirs.
+
+About 480 lines: the turntable's URL, connect sequence, homing, two stops and moves, each short;
+the serial link (send, answers, resync, reader, status polling) is `drivers.grbl_link`.
 """
 
 from __future__ import annotations
@@ -40,11 +43,10 @@ from .errors import (
     InvalidDeviceURL,
     MoveAborted,
 )
-from .grbl_link import GrblLink, Pending
+from .grbl_link import GrblLink
 from .grbl_protocol import (
     CYCLE_START,
     FEED_HOLD,
-    STATUS_QUERY,
     StatusReport,
     alarm_error,
     alarm_meaning,
@@ -435,7 +437,7 @@ class GrblTurntable(Turntable):
                 move = self.link.send_line(line)
                 done = self.link.send_line("G4 P0")
                 self.link.wait_ack(move, self.timeout)
-                self._wait_motion(done, timeout, line)
+                self.link.wait_motion(done, timeout, line, self.poll_interval, self.link_timeout)
             except (FirmwareError, DeviceTimeout) as exc:
                 self._raise_if_aborted(stops, resets, line, degrees, exc)
                 raise
@@ -473,52 +475,6 @@ class GrblTurntable(Turntable):
                             "it", self.port)
             link.command("$X")
         return status
-
-    def _wait_motion(self, pending: Pending, timeout: float, line: str) -> None:
-        """Wait for the ``ok`` of ``G4 P0``, polling ``?``; time spent in a hold does not count.
-
-        GRBL answers ``?`` within milliseconds whatever it is doing, so ``link_timeout`` s
-        without a status report means the link is gone even when the port itself stays open
-        (a USB bridge still enumerated, a network bridge): `DeviceDisconnected`."""
-        link = self.link
-        deadline = last = heard = time.monotonic()
-        deadline += timeout
-        next_poll = last + self.poll_interval
-        with link.cond:
-            heard_seq = link.status_seq
-            while not pending.done:
-                link.raise_if_failed()
-                now = time.monotonic()
-                if link.status_seq != heard_seq:
-                    heard, heard_seq = now, link.status_seq
-                elif now - heard > self.link_timeout:
-                    link.abandon(pending)
-                    raise link.fail(
-                        TimeoutError(line),
-                        f"{self.port}: no status report for {self.link_timeout:.1f} s during "
-                        f"{line!r} (cable pulled or board without power?)")
-                if link.alarm_seq > pending.alarm_seq:
-                    link.abandon(pending)
-                    raise alarm_error(link.last_alarm, line)
-                if link.status_report is not None and link.status_report.state == "Hold":
-                    deadline += now - last
-                last = now
-                if now >= deadline:
-                    link.abandon(pending)
-                    raise DeviceTimeout(
-                        f"{self.port}: {line!r} not finished within {timeout:.1f} s"
-                    )
-                if now >= next_poll:
-                    link.cond.release()
-                    try:
-                        link.write(STATUS_QUERY)
-                    finally:
-                        link.cond.acquire()
-                    next_poll = now + self.poll_interval
-                wake = min(deadline, next_poll, heard + self.link_timeout + 1e-3)
-                link.cond.wait(max(wake - now, 0.0))
-        if pending.error is not None:
-            raise pending.error
 
     def _work_angle(self, status: StatusReport) -> float:
         position = status.work_position(self.link.wco)

@@ -5,7 +5,8 @@ the bytes of lines not yet answered never exceed GRBL's RX buffer (character cou
 answer is detected by timeout; the next operation resynchronises with ``$G`` (`resync`), whose
 ``[GC:…]`` marks where the answers line up again. A banner means the firmware reset: every line
 in flight fails. Real-time bytes (``?``, ``!``, ``~``, 0x18) go out at once (`write`). Knows
-nothing of turntables (`drivers.grbl`).
+nothing of turntables (`drivers.grbl`). About 420 lines: one link object, a reader thread and
+the waits on it, which share one lock and read best together.
 """
 
 from __future__ import annotations
@@ -210,6 +211,52 @@ class GrblLink:
         if pending.error is not None:
             raise pending.error
         return pending.info
+
+    def wait_motion(self, pending: Pending, timeout: float, line: str, poll_interval: float,
+                    link_timeout: float) -> None:
+        """Wait for the ``ok`` of ``G4 P0``, polling ``?``; time spent in a hold does not count.
+
+        GRBL answers ``?`` within milliseconds whatever it is doing, so ``link_timeout`` s
+        without a status report means the link is gone even when the port itself stays open
+        (a USB bridge still enumerated, a network bridge): `DeviceDisconnected`."""
+        deadline = last = heard = time.monotonic()
+        deadline += timeout
+        next_poll = last + poll_interval
+        with self.cond:
+            heard_seq = self.status_seq
+            while not pending.done:
+                self.raise_if_failed()
+                now = time.monotonic()
+                if self.status_seq != heard_seq:
+                    heard, heard_seq = now, self.status_seq
+                elif now - heard > link_timeout:
+                    self.abandon(pending)
+                    raise self.fail(
+                        TimeoutError(line),
+                        f"{self.port}: no status report for {link_timeout:.1f} s during "
+                        f"{line!r} (cable pulled or board without power?)")
+                if self.alarm_seq > pending.alarm_seq:
+                    self.abandon(pending)
+                    raise alarm_error(self.last_alarm, line)
+                if self.status_report is not None and self.status_report.state == "Hold":
+                    deadline += now - last
+                last = now
+                if now >= deadline:
+                    self.abandon(pending)
+                    raise DeviceTimeout(
+                        f"{self.port}: {line!r} not finished within {timeout:.1f} s"
+                    )
+                if now >= next_poll:
+                    self.cond.release()
+                    try:
+                        self.write(STATUS_QUERY)
+                    finally:
+                        self.cond.acquire()
+                    next_poll = now + poll_interval
+                wake = min(deadline, next_poll, heard + link_timeout + 1e-3)
+                self.cond.wait(max(wake - now, 0.0))
+        if pending.error is not None:
+            raise pending.error
 
     def abandon(self, pending: Pending) -> None:
         """Forget a line whose answer we stop waiting for; the next operation resynchronises."""

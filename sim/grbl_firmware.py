@@ -16,6 +16,10 @@ alarm; a reset while ``G4 P0`` waits may answer that ``ok`` before ``ALARM:3``
 (``reset_ok_rate``). Fault knobs (constructor arguments, URL query parameters through
 `firmware_options`) match lines by substring after GRBL's normalisation (upper case, no spaces):
 ``error_on={"X90": 33}`` answers ``error:33`` to ``G1 X90 F600``.
+
+About 590 lines: one state machine (GRBL's protocol.c, report.c and system.c: serial side,
+real-time bytes, line queue, ``$`` commands, resets and alarms, fault knobs) whose parts share
+the output queue and the line queue; the G-code parser, the motion and homing are apart.
 """
 
 from __future__ import annotations

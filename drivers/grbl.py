@@ -60,6 +60,7 @@ from .grbl_protocol import (
 log = logging.getLogger(__name__)
 
 _MAX_MOVE_TIMEOUT = 3600.0  # s
+_POSITION_LOST = frozenset({1, 3})  # alarms GRBL documents as "position is likely lost"
 _FLAG = {"1": True, "true": True, "yes": True, "0": False, "false": False, "no": False}
 _QUERY = {
     "baud": ("baudrate", int),
@@ -204,10 +205,10 @@ class GrblTurntable(Turntable):
         soft reset, which GRBL does without an alarm once the hold is complete: the position
         stays valid and the next move needs no unlock. A move waiting in another thread raises
         `MoveAborted`. During a homing cycle (no hold possible) this is an emergency stop."""
-        self._count_stop()
         if not self._homed.is_set():
             self.emergency_stop()
             return
+        self._count_stop()
         status = self.status()
         if status.moving or status.state == "Hold":
             self.link.write(FEED_HOLD)
@@ -439,6 +440,8 @@ class GrblTurntable(Turntable):
                 self.link.wait_ack(move, self.timeout)
                 self.link.wait_motion(done, timeout, line, self.poll_interval, self.link_timeout)
             except (FirmwareError, DeviceTimeout) as exc:
+                if isinstance(exc, FirmwareAlarm) and exc.code in _POSITION_LOST:
+                    self._referenced = False
                 self._raise_if_aborted(stops, resets, line, degrees, exc)
                 raise
             self._raise_if_aborted(stops, resets, line, degrees, None)

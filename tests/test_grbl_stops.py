@@ -81,6 +81,7 @@ def test_an_alarm_of_its_own_is_not_a_stop(tmp_path):
         with pytest.raises(FirmwareAlarm) as info:
             table.move_to(90)
         assert info.value.code == 1 and not isinstance(info.value, MoveAborted)
+        assert not table.referenced  # GRBL: "position is likely lost"
 
 
 def test_status_asks_again_after_a_garbled_report(tmp_path):

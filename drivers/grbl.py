@@ -316,7 +316,10 @@ class GrblTurntable(Turntable):
     def homing_timeout(self) -> float:
         """Seconds a ``$H`` may take: the longest cycle the settings allow (every axis's
         search, see `homing_duration`) x 1.25, plus ``margin`` and ``timeout``."""
-        return homing_duration(self.settings) * 1.25 + self.margin + self.timeout
+        try:
+            return homing_duration(self.settings) * 1.25 + self.margin + self.timeout
+        except KeyError:  # a firmware that does not list every homing setting: wait long
+            return _MAX_MOVE_TIMEOUT
 
     # ------------------------------------------------------------------ life cycle
     def _open(self) -> None:

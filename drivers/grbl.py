@@ -417,7 +417,7 @@ class GrblTurntable(Turntable):
 
     def _reset_after_stop(self, what: str) -> None:
         self.link.soft_reset()
-        if self.status().state == "Alarm" and self._referenced:
+        if self.status().state == "Alarm":  # our reset hit a motion: ALARM:3 or 6
             self._referenced = False
             log.warning("%s: %s while moving: GRBL reports the position as likely lost; the "
                         "angle is unreferenced until home()", self.port, what)

@@ -352,3 +352,15 @@ def test_calibrate_runs_end_to_end_against_a_grbl_board(grbl_board, tmp_path, ca
     distance, angle = (float(v) for v in
                        printed.split("true axis: ")[1].replace("mm,", "").split("°")[0].split())
     assert distance < 1.0 and angle < 1.0
+
+
+def test_a_station_with_a_grbl_table_and_the_simulated_camera_follows_it(grbl_board):
+    """`scanstation scan --turntable grbl://…` without a camera URL: hardware in the loop."""
+    from capture.station import open_station
+
+    with open_station(camera_url="sim://camera?noise=0&width=96&height=64",
+                      turntable_url=grbl_board) as station:
+        station.turntable.move_to(120)
+        depth = station.camera.grab().depth
+        assert station.camera.table_angle() == 120
+        assert np.array_equal(depth, np.round(station.camera.render(120)[0]).astype(np.uint16))

@@ -6,7 +6,10 @@ Round trips (``?`` status, one G-code line's ``ok``) through the driver, against
 client on the same pty (the peer: what the link itself costs); and a 360° sequence of 36 moves of
 10°, instant and in real time, against the ideal motion time of the trapezoidal profile; and how
 long a fault mid-move (cable pulled, or a link gone silent with the port still open) takes to
-raise DeviceDisconnected (target: within 1 s).
+raise DeviceDisconnected (target: within 1 s); and how a move is stopped: `stop()` (feed hold,
+Hold:0, reset) against `emergency_stop()` (reset at once), cruising at $110: time in the call,
+distance run after it against the ideal v²/2a, whether the reported angle is the table's true
+one afterwards and whether GRBL kept the position (no ALARM:3).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import contextlib
 import logging
 import statistics
 import tempfile
+import threading
 import time
 
 import serial
@@ -110,6 +114,54 @@ def main() -> None:
         delays = fault_detection(fault, args.faults)
         verdict = "yes" if max(delays) <= 1.0 else "NO"
         print(f"{name:<26} {statistics.median(delays):>9.3f} {max(delays):>7.3f} {verdict:>7}")
+    print_stops(args.faults)
+
+
+def stop_figures(how: str, repeats: int) -> dict[str, list]:
+    """Stop a move cruising at MAX_RATE ``repeats`` times with ``table.<how>()``."""
+    figures = {"call_s": [], "run_deg": [], "error_deg": [], "kept": []}
+    for _ in range(repeats):
+        with pty_table(instant=False, max_rate=MAX_RATE, acceleration=ACCEL) as (table, tp):
+            firmware = tp.firmware
+            mover = threading.Thread(target=lambda: _ignore_abort(table.move_to, 3600))
+            mover.start()
+            cruise = (MAX_RATE / 60) ** 2 / (2 * ACCEL)
+            while firmware.position_degrees() < 2 * cruise:
+                time.sleep(0.002)
+            at_call = firmware.position_degrees()
+            start = time.perf_counter()
+            getattr(table, how)()
+            figures["call_s"].append(time.perf_counter() - start)
+            mover.join()
+            time.sleep(0.05)
+            true = firmware.position_degrees()
+            figures["run_deg"].append(true - at_call)
+            figures["error_deg"].append(abs(table.angle - true))
+            figures["kept"].append(firmware.state != "Alarm" and table.referenced)
+    return figures
+
+
+def _ignore_abort(move, target) -> None:
+    try:
+        move(target)
+    except drivers.MoveAborted:
+        pass
+
+
+def print_stops(repeats: int) -> None:
+    speed = MAX_RATE / 60
+    print(f"\nStopping a move cruising at {speed:.0f} deg/s ($120={ACCEL:.0f} deg/s^2), "
+          f"{repeats} each: ideal deceleration {speed / ACCEL:.3f} s over "
+          f"{speed**2 / (2 * ACCEL):.1f} deg")
+    print(f"{'stop':<16} {'call s':>7} {'run deg':>8} {'ideal deg':>9} {'|angle-true|':>12} "
+          f"{'position kept':>13}")
+    for how in ("stop", "emergency_stop"):
+        f = stop_figures(how, repeats)
+        ideal = speed**2 / (2 * ACCEL) if how == "stop" else 0.0
+        kept = f"{sum(f['kept'])}/{repeats}"
+        print(f"{how:<16} {statistics.median(f['call_s']):>7.3f} "
+              f"{statistics.median(f['run_deg']):>8.2f} {ideal:>9.2f} "
+              f"{max(f['error_deg']):>12.4f} {kept:>13}")
 
 
 def fault_detection(fault: str, repeats: int) -> list[float]:

@@ -103,6 +103,13 @@ class Station:
         self.close()
 
 
+def follow_turntable(camera: DepthCamera, turntable: Turntable) -> None:
+    """A simulated camera renders at the angle ``turntable`` reports, whatever its backend (a
+    GRBL board: hardware in the loop); other cameras see the real table anyway."""
+    if hasattr(camera, "follow"):
+        camera.follow(turntable)
+
+
 def open_station(camera_url=None, turntable_url=None, object=None, calibration=None,
                  seed: int = 0) -> Station:
     """Open the station's devices (see `station_urls`) and settle its calibration.
@@ -131,6 +138,7 @@ def open_station(camera_url=None, turntable_url=None, object=None, calibration=N
         camera.close()
         turntable.close()
         raise
+    follow_turntable(camera, turntable)
     return Station(camera, turntable, calibration, camera_url, turntable_url)
 
 

@@ -9,7 +9,9 @@ from .errors import (
     DriverUnavailable,
     FirmwareAlarm,
     FirmwareError,
+    HomingFailed,
     InvalidDeviceURL,
+    MoveAborted,
 )
 from .registry import list_devices, open_camera, open_turntable
 
@@ -24,7 +26,9 @@ __all__ = [
     "FirmwareAlarm",
     "FirmwareError",
     "Frame",
+    "HomingFailed",
     "InvalidDeviceURL",
+    "MoveAborted",
     "Turntable",
     "list_devices",
     "open_camera",

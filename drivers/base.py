@@ -67,7 +67,8 @@ class Device(abc.ABC):
 
 
 class Turntable(Device):
-    """A rotary stage. Angles in degrees; moves return when the table is still."""
+    """A rotary stage. Angles in degrees; moves return when the table is still, and raise
+    `MoveAborted` when a stop cut them short."""
 
     @abc.abstractmethod
     def home(self) -> None:
@@ -92,7 +93,19 @@ class Turntable(Device):
 
     @abc.abstractmethod
     def stop(self) -> None:
-        """Stop any motion now."""
+        """Stop any motion with a controlled deceleration; the angle stays valid. A move
+        waiting in another thread raises `MoveAborted`."""
+
+    def emergency_stop(self) -> None:
+        """Stop at once, when speed matters more than position: the angle may be lost
+        (``referenced`` becomes False until `home`). Backends that can stop harder override it."""
+        self.stop()
+
+    @property
+    def referenced(self) -> bool:
+        """True while the angle is known to match the table (no stop has lost steps, homed if
+        the device homes)."""
+        return True
 
 
 @dataclasses.dataclass(frozen=True)

@@ -44,3 +44,17 @@ class FirmwareAlarm(FirmwareError):
     def __init__(self, code: int | str, meaning: str, command: str | None = None):
         super().__init__(code, meaning, command)
         self.args = (f"firmware alarm {code}: {meaning}",)
+
+
+class HomingFailed(FirmwareAlarm):
+    """The homing cycle failed (GRBL's ALARM:6–10); the message says what to check."""
+
+
+class MoveAborted(DeviceError):
+    """A move did not reach its target because it was stopped (`Turntable.stop`,
+    `Turntable.emergency_stop`) or the firmware reset meanwhile. ``target`` is the angle it was
+    going to; read ``angle`` for where the table stands."""
+
+    def __init__(self, message: str, target: float | None = None):
+        super().__init__(message)
+        self.target = target

@@ -12,6 +12,8 @@ import enum
 import math
 import re
 
+from .errors import FirmwareAlarm, HomingFailed
+
 #: Real-time commands: picked off the serial stream by the firmware, never buffered, no `ok`.
 SOFT_RESET = b"\x18"
 STATUS_QUERY = b"?"
@@ -81,6 +83,47 @@ ALARM_CODES: dict[int, str] = {
 
 #: Alarms after which GRBL blocks every line until a soft reset (`[MSG:Reset to continue]`).
 CRITICAL_ALARMS = frozenset({1, 2, 10})
+
+#: What to check after each homing alarm (gnea/grbl limits.c, limits_go_home).
+HOMING_ADVICE: dict[int, str] = {
+    6: "the cycle was stopped or reset before it finished; run home() again",
+    7: "the safety door opened during homing; close it and run home() again",
+    8: "the pull-off ($27) did not clear the switch; raise $27 or check the switch",
+    9: "no switch closed within 1.5 x the max travel ($130-$132) of an axis of the cycle "
+       "(stock 1.1h homes Z, then X and Y, and needs a switch on each); check the switches and "
+       "their wiring, or set $22=0 on a table without a switch",
+    10: "the second switch of a dual axis was not found; check its wiring",
+}
+#: GRBL's homing search reaches 1.5 x the max travel, the locate phase 5 x the pull-off.
+HOMING_SEARCH_SCALAR, HOMING_LOCATE_SCALAR = 1.5, 5.0
+
+
+def alarm_error(code: int | None, command: str | None = None):
+    """The exception for ``ALARM:code``: `HomingFailed` (with what to check) for 6-10, else
+    `FirmwareAlarm`."""
+    code = 1 if code is None else code
+    if code in HOMING_ADVICE:
+        return HomingFailed(code, f"{alarm_meaning(code)}: {HOMING_ADVICE[code]}", command)
+    return FirmwareAlarm(code, alarm_meaning(code), command)
+
+
+def homing_duration(settings: dict[int, float]) -> float:
+    """Longest time in seconds a ``$H`` can take with these ``$`` settings, whatever the
+    compiled cycles: every axis (X, Y, Z) searches 1.5 x its max travel ($130-$132) at the seek
+    rate $25 (capped by $110-$112, accelerating at $120-$122), pulls off $27, locates the switch
+    within 5 x $27 at the feed rate $24 and pulls off again, with the $26 ms debounce after each
+    of the four phases. A cycle homing several axes together takes as long as its slowest axis,
+    so the sum over axes bounds any grouping (stock 1.1h: Z, then X and Y)."""
+    total = 0.0
+    for i in range(3):
+        rate, accel = settings[110 + i], settings[120 + i]
+        seek, feed = min(settings[25], rate), min(settings[24], rate)
+        pull = settings[27]
+        total += move_duration(HOMING_SEARCH_SCALAR * settings[130 + i], seek, accel)
+        total += 2 * move_duration(pull, seek, accel)
+        total += move_duration(HOMING_LOCATE_SCALAR * pull, feed, accel)
+        total += 4 * settings[26] / 1000.0
+    return total
 
 
 def error_meaning(code: int) -> str:

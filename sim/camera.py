@@ -5,6 +5,8 @@
 
 The object stands on the turntable plate (a disc, top at z = 0) in front of a wall and turns with
 the station's simulated turntable: each ``grab`` renders the table's true angle at that moment.
+`SimCamera.follow` makes it render at the angle any other `Turntable` reports instead (a GRBL
+board on a real port: hardware in the loop for `scanstation scan` and `calibrate`).
 Optics: 640×400, 72° horizontal field of view, 75 mm stereo baseline, looking at the axis from
 ``distance`` mm, ``elevation`` degrees above the plate. Options (URL query or keywords):
 ``noise`` (scale of the disparity error; 0 = ideal depth), ``seed``, ``engine`` (numpy | embree),
@@ -112,6 +114,7 @@ class SimCamera(DepthCamera):
         self._unplugged = False
         self._disconnected_once = False
         self._last_grab = None
+        self._followed = None  # a Turntable whose reported angle is rendered, or None
 
     @classmethod
     def from_url(cls, url: str, **options) -> SimCamera:
@@ -138,6 +141,19 @@ class SimCamera(DepthCamera):
         """The object's renderer (`sim.render.MeshRenderer` of the chosen engine)."""
         self._load_object()
         return self._renderer
+
+    def follow(self, turntable) -> None:
+        """Render at the angle ``turntable`` reports, whatever its backend. A simulated
+        turntable of this camera's station is followed already (its firmware's true angle), so
+        it is left to the station; None goes back to the station."""
+        same_station = getattr(turntable, "station", None) == self.station
+        self._followed = None if turntable is None or same_station else turntable
+
+    def table_angle(self) -> float:
+        """Degrees: the followed turntable's reported angle, else the station's true angle."""
+        if self._followed is not None:
+            return float(self._followed.angle)
+        return get_station(self.station).angle_degrees()
 
     def true_object_mesh(self) -> trimesh.Trimesh:
         """The object in the table frame at table angle 0 (ground truth), mm."""
@@ -194,7 +210,7 @@ class SimCamera(DepthCamera):
                 wait = self._last_grab + 1.0 / self.options["fps"] - time.monotonic()
                 if wait > 0:
                     time.sleep(wait)
-            depth, cosine = self.render(get_station(self.station).angle_degrees())
+            depth, cosine = self.render(self.table_angle())
             if self.options["noise"] > 0:
                 depth_mm = self.noise_model.apply(depth, cosine, self._intrinsics[0, 0], self._rng)
             else:

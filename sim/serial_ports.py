@@ -4,7 +4,7 @@
   a stable symlink) exactly as it opens a USB serial adapter. Closing the master end
   (`unplug`, or the firmware's ``unplug_after_moves`` fault) is a pulled cable.
 - ``simgrbl://<station>?<firmware options>``: a pyserial URL handler for an in-process firmware
-  (the station's, see `sim.grbl_firmware.station_firmware`), registered in
+  (the station's, see `sim.grbl_options.station_firmware`), registered in
   ``serial.protocol_handler_packages`` when this module is imported. pyserial imports handlers as
   ``<package>.protocol_<scheme>``; the handler module is registered under that name here.
 """
@@ -22,7 +22,8 @@ import urllib.parse
 
 import serial
 
-from sim.grbl_firmware import GrblFirmware, firmware_options, station_firmware
+from sim.grbl_firmware import GrblFirmware
+from sim.grbl_options import firmware_options, station_firmware
 
 log = logging.getLogger(__name__)
 

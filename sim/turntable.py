@@ -2,12 +2,15 @@
 
     sim://turntable?station=default&instant=1&transport=url
     sim://turntable?instant=0&max_rate=36000&accel=7200&transport=pty&unplug_after_moves=3
+    sim://turntable?homing=1&instant=0&time_scale=100&power_on_angle=90&home=0
 
 ``transport=url`` (default) reaches an in-process firmware through pyserial's ``simgrbl://``
 handler; ``transport=pty`` serves it on a pseudo-terminal that the driver opens like a USB adapter.
-Firmware parameters: see `sim.grbl_firmware.URL_OPTIONS` (``instant``, ``max_rate``, ``accel``,
-``steps``, ``homing`` and the fault knobs); the driver's own (``feed``, ``timeout``, ``poll``,
-``margin``, ``axis``…) pass through to `drivers.grbl.GrblTurntable`. The firmware is the station's
+Firmware parameters: see `sim.grbl_options.URL_OPTIONS` (``instant``, ``time_scale``,
+``max_rate``, ``accel``, ``steps``, ``homing``, ``homing_cycles``, ``switches``,
+``power_on_angle``, ``reset_ok_rate`` and the fault knobs); the driver's own (``feed``,
+``timeout``, ``poll``, ``margin``, ``axis``, ``home``…) pass through to
+`drivers.grbl.GrblTurntable`. The firmware is the station's
 angle source, so a simulated camera on the same station renders the table's true angle.
 """
 
@@ -20,7 +23,8 @@ import urllib.parse
 
 from drivers.errors import InvalidDeviceURL
 from drivers.grbl import GrblTurntable
-from sim.grbl_firmware import GrblFirmware, firmware_options, station_firmware
+from sim.grbl_firmware import GrblFirmware
+from sim.grbl_options import firmware_options, station_firmware
 from sim.serial_ports import URL_SCHEME, PtyTransport
 from sim.station import get_station
 

@@ -9,6 +9,7 @@ import time
 
 import pytest
 import serial
+from grbl_rig import rig, run_in_thread, wait_for
 
 import drivers
 from drivers import (
@@ -27,38 +28,6 @@ from sim.serial_ports import PtyTransport, SimGrblSerial
 from sim.station import get_station, reset_stations
 
 STEP = 1 / 250  # the simulator's default resolution, degrees
-
-
-@contextlib.contextmanager
-def rig(tmp_path, query="", **firmware_options):
-    """(turntable, firmware, transport): the driver opened on ``grbl://<pty symlink>``."""
-    firmware = GrblFirmware(**firmware_options)
-    with PtyTransport(firmware, link=str(tmp_path / "ttyGRBL")) as transport:
-        url = f"grbl://{transport.port_name}?timeout=1&poll=0.02&feed=60000{query}"
-        with drivers.open_turntable(url) as table:
-            yield table, firmware, transport
-
-
-def run_in_thread(function, *args):
-    """Start ``function(*args)``; the returned thread has ``.error`` once joined."""
-
-    def target():
-        try:
-            function(*args)
-        except Exception as exc:  # handed to the test
-            thread.error = exc
-
-    thread = threading.Thread(target=target)
-    thread.error = None
-    thread.start()
-    return thread
-
-
-def wait_for(predicate, timeout=3.0):
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached"
-        time.sleep(0.005)
 
 
 # ---------------------------------------------------------------- connecting
@@ -182,22 +151,6 @@ def test_unlock_right_after_an_alarm(tmp_path):
         assert firmware.state == "Idle"
         table.send_gcode(["G90 G0 X10", "G4 P0"])
         assert table.angle == 10
-
-
-def test_stop_during_a_realtime_move(tmp_path):
-    with rig(tmp_path, instant=False, max_rate=7200, acceleration=1200) as (table, fw, _):
-        mover = run_in_thread(table.move_to, 360)
-        wait_for(lambda: fw.position_degrees() > 10)
-        table.stop()
-        mover.join()
-        assert isinstance(mover.error, FirmwareAlarm) and mover.error.code == 3
-        stopped = table.angle
-        assert 10 < stopped < 360 and stopped == fw.position_degrees()
-        assert fw.state == "Alarm"
-        time.sleep(0.05)
-        assert fw.position_degrees() == stopped  # a reset stops at once
-        table.move_to(stopped + 5)  # unlocks first
-        assert table.angle == pytest.approx(stopped + 5) and fw.state == "Idle"
 
 
 def test_feed_hold_and_resume(tmp_path):

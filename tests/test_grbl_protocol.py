@@ -22,15 +22,10 @@ from drivers.grbl_protocol import (
     parse_setting,
     parse_status,
 )
-from sim.grbl_firmware import (
-    BANNER,
-    LOCK_MESSAGE,
-    GrblFirmware,
-    Profile,
-    firmware_options,
-    normalize_line,
-    station_firmware,
-)
+from sim.grbl_firmware import BANNER, LOCK_MESSAGE, GrblFirmware
+from sim.grbl_gcode import normalize_line
+from sim.grbl_motion import Profile
+from sim.grbl_options import firmware_options, station_firmware
 from sim.station import get_station, reset_stations
 
 # ---------------------------------------------------------------- status reports (GRBL.md shapes)
@@ -311,7 +306,8 @@ def test_homing_lock_and_cycle(clock):
     talk(firmware)
     assert talk(firmware, b"G0 X1\n") == ["error:9"]
     assert talk(firmware, b"$H\n") == ["ok"]
-    assert firmware.state == "Idle" and firmware.position_degrees() == 0
+    assert firmware.state == "Idle"
+    assert firmware.position_degrees() == -1  # GRBL: -$27 (pull-off) once homed, $23=0
 
 
 def test_units_distance_modes_and_steps(clock):
@@ -355,3 +351,103 @@ def test_firmware_options_from_url_query():
     assert query == {"other": ["1"]}
     with pytest.raises(ValueError, match="instant"):
         firmware_options({"instant": ["maybe"]})
+
+
+# ---------------------------------------------------------------- what real 1.1h does (GRBL.md)
+
+
+@pytest.mark.parametrize("rate, first", [(1.0, ["ok", "ALARM:3"]), (0.0, ["ALARM:3"])])
+def test_reset_during_g4_p0_may_answer_its_ok_before_alarm_3(clock, rate, first):
+    firmware = GrblFirmware(instant=False, max_rate=500, acceleration=10, clock=clock,
+                            reset_ok_rate=rate)
+    talk(firmware, b"G1 X90 F360\nG4 P0\n")
+    clock.t += 2.0
+    assert talk(firmware, b"\x18") == [*first, "", BANNER, LOCK_MESSAGE]
+
+
+def test_reset_after_a_complete_feed_hold_keeps_the_position_without_alarm(clock):
+    slow = GrblFirmware(instant=False, max_rate=500, acceleration=10, clock=clock,
+                        reset_ok_rate=0)
+    talk(slow, b"G1 X90 F360\nG4 P0\n")
+    clock.t += 5.0
+    talk(slow, b"!")
+    clock.t += 0.5  # 6 units/s at 10 units/s^2: still in 0.6 s
+    assert talk(slow, b"?")[0].startswith("<Hold:1|")
+    clock.t += 0.2
+    assert talk(slow, b"?")[0].startswith("<Hold:0|MPos:30.000,")
+    assert talk(slow, b"\x18") == ["", BANNER]  # no ALARM:3, no lock
+    assert talk(slow, b"?")[0].startswith("<Idle|MPos:30.000,")
+    talk(slow, b"\x18G1 X31 F60\n")  # and the next move runs, without $X
+    clock.t += 5
+    assert slow.position_degrees() == 31
+
+
+def test_reset_while_decelerating_into_a_hold_is_still_an_abort(slow, clock):
+    talk(slow, b"G1 X90 F360\n")
+    clock.t += 5.0
+    talk(slow, b"!")
+    clock.t += 0.2
+    assert talk(slow, b"\x18")[0] == "ALARM:3"
+
+
+def homing_firmware(clock, **options):
+    return GrblFirmware(homing=True, instant=False, clock=clock, max_rate=3600,
+                        acceleration=100, **options)
+
+
+def test_homing_cycles_send_no_status_reports_and_take_every_axis(clock):
+    firmware = homing_firmware(clock, power_on_angle=90)  # stock: $25=500, $24=25, $27=1
+    talk(firmware)
+    assert talk(firmware, b"$H\n?") == []
+    clock.t += 30.0
+    assert talk(firmware, b"?") == []  # GRBL's homing loop reads no real-time command
+    clock.t += 30.0  # Z alone: 270 deg to its switch at 500 deg/min = 32.4 s
+    assert talk(firmware) == []
+    clock.t += 20.0  # then X and Y together: 32.4 s; each cycle locates ~3.7 s ($24=25)
+    lines = talk(firmware)
+    assert len(lines) == 2 and lines[0].startswith("<Home|MPos:-1.000,-1.000,-1.000|")
+    assert lines[1] == "ok"  # one report (asked for during the cycle), then $H's ok
+    assert firmware.state == "Idle"
+    assert firmware.position_degrees() % 360 == 359  # 1 deg ($27) short of the switch at 0
+
+
+def test_homing_time_is_bounded_by_the_sum_over_axes(clock):
+    from drivers.grbl_protocol import homing_duration, move_duration
+
+    firmware = homing_firmware(clock, power_on_angle=0.5)  # every switch a whole turn away
+    talk(firmware)
+    talk(firmware, b"$H\n")
+    started = clock.t
+    while talk(firmware) != ["ok"]:
+        clock.t += 0.05
+    took = clock.t - started
+    x_only = move_duration(1.5 * 360, 500, 100)  # what the driver used to allow
+    assert x_only < took <= homing_duration(firmware.settings)
+
+
+def test_homing_without_a_switch_alarms_9_and_locks(clock):
+    firmware = homing_firmware(clock, switches="X", time_scale=1.0)  # stock cycle: Z first
+    talk(firmware)
+    assert talk(firmware, b"$H\n") == []
+    clock.t += 60
+    assert talk(firmware, b"?") == []  # a request made during the cycle
+    clock.t += 1.5 * 360 / 500 * 60 - 60 + 0.5  # the whole Z search (64.8 s) finds nothing
+    lines = talk(firmware)
+    assert lines[0] == "ALARM:9" and lines[1].startswith("<Alarm|MPos:0.000,0.000,540.000|")
+    assert lines[2:] == ["", BANNER, LOCK_MESSAGE]  # homing failures end in a reset
+    assert firmware.state == "Alarm" and talk(firmware, b"G0 X1\n") == ["error:9"]
+
+
+def test_reset_during_homing_alarms_6(clock):
+    firmware = homing_firmware(clock, power_on_angle=90)
+    talk(firmware, b"$H\n")
+    clock.t += 3
+    assert talk(firmware, b"\x18") == ["ALARM:6", "", BANNER, LOCK_MESSAGE]
+
+
+def test_a_garbled_status_report_does_not_parse(clock):
+    firmware = GrblFirmware(clock=clock, garble_status_every=2)
+    talk(firmware)
+    first, second = talk(firmware, b"?"), talk(firmware, b"?")
+    assert parse_response(first[0]).kind is Kind.STATUS
+    assert parse_response(second[0]).kind is Kind.UNKNOWN

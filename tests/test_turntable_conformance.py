@@ -12,7 +12,7 @@ import urllib.parse
 import pytest
 
 import drivers
-from drivers import DeviceError, InvalidDeviceURL, Turntable
+from drivers import DeviceError, InvalidDeviceURL, MoveAborted, Turntable
 from drivers.registry import backend_class
 from sim.station import get_station, reset_stations
 
@@ -162,13 +162,57 @@ def test_stop_mid_move_halts_between_start_and_target_then_moves_again(table, ur
     _wait_until_moving(table, 0)
     table.stop()
     mover.join(10)
-    assert not mover.is_alive() and "error" in outcome  # the interrupted move says so
+    assert not mover.is_alive()
+    assert isinstance(outcome.get("error"), MoveAborted)  # the interrupted move says so
     stopped = table.angle
     assert 0 < stopped < 60
+    assert table.referenced  # a controlled stop keeps the angle
     table.wait_until_still(timeout=5)
     assert table.angle == pytest.approx(stopped, abs=TOLERANCE)  # it stays where it stopped
     table.move_to(5)
     assert table.angle == pytest.approx(5, abs=TOLERANCE)
+
+
+def test_emergency_stop_mid_move_raises_then_moves_again(table, url):
+    if not _moves_in_real_time(url):
+        pytest.skip("instant backend: there is no 'mid-move'")
+    table.home()
+    mover, outcome = _start_move(table, 60)
+    _wait_until_moving(table, 0)
+    table.emergency_stop()
+    mover.join(10)
+    assert not mover.is_alive() and isinstance(outcome.get("error"), MoveAborted)
+    assert 0 < table.angle < 60
+    table.move_to(5)  # allowed, the angle may be off until home()
+    assert table.angle == pytest.approx(5, abs=TOLERANCE)
+    table.home()
+    assert table.referenced
+
+
+def _simulated_homing(url: str, extra: str) -> str:
+    if not url.startswith("sim://"):
+        pytest.skip("needs a table with homing switches; simulated backends only")
+    if "instant=0" in url:
+        extra += "&time_scale=200"  # stock homing rates: a minute of simulated time
+    return with_param(url, "homing=1&power_on_angle=90" + extra)
+
+
+def test_homing_at_connect_references_the_table(url):
+    with drivers.open_turntable(_simulated_homing(url, "")) as table:
+        assert table.referenced
+        assert get_station("conformance").angle_degrees() % 360 == pytest.approx(359)
+        table.move_to(10)
+        assert table.angle == pytest.approx(10, abs=TOLERANCE)
+
+
+def test_home_0_unlocks_without_homing(url, caplog):
+    with caplog.at_level("WARNING"), drivers.open_turntable(_simulated_homing(url, "&home=0"))\
+            as table:
+        assert not table.referenced and "unreferenced" in caplog.text
+        assert get_station("conformance").angle_degrees() == pytest.approx(90)
+        table.move_to(10)
+        table.home()
+        assert table.referenced and table.angle == pytest.approx(0, abs=TOLERANCE)
 
 
 def test_wait_until_still_times_out_while_moving(table, url):

@@ -27,7 +27,7 @@ def run(args) -> int:
     import numpy as np
 
     from capture.calibration import Calibration, DumbbellTarget, calibrate
-    from capture.station import is_simulated, station_urls
+    from capture.station import follow_turntable, is_simulated, station_urls
     from drivers.registry import open_camera, open_turntable
 
     if args.views < 4:
@@ -43,6 +43,7 @@ def run(args) -> int:
                                                  object=target_file and str(target_file))
         angles = tuple(float(a) for a in np.arange(args.views) * 360.0 / args.views)
         with open_camera(camera_url) as camera, open_turntable(turntable_url) as table:
+            follow_turntable(camera, table)
             log.info("capturing the target at %d angles", len(angles))
             calibration = calibrate(camera, table, angles=angles, target=target)
             truth = Calibration.from_sim(camera) if is_simulated(camera_url) else None

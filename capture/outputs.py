@@ -1,7 +1,7 @@
 """A scan's output folder: checked before the scan moves, written atomically at its end.
 
 Files: ``recording.mcap`` (and later segments; `capture.recording`), ``mesh.ply`` (the final
-mesh), ``engine/`` (the re-meshable fits, `capture.engine.refine`), ``scan.json`` (plan,
+mesh), ``engine/`` (the re-meshable fits, `capture.live.engine.remesh`), ``scan.json`` (plan,
 calibration, station, state and reason, timings, mesh figures, quality against the simulated
 object's true surface when there is one).
 """

@@ -30,7 +30,6 @@ from .documents import (
     StopDocument,
     ViewDocument,
 )
-from .engine import IncrementalEngine
 from .lifecycle import (  # noqa: F401  (re-exported: the runner's public names)
     TERMINAL,
     TRANSITIONS,
@@ -39,6 +38,7 @@ from .lifecycle import (  # noqa: F401  (re-exported: the runner's public names)
     InvalidTransition,
     RunLifecycle,
 )
+from .live.engine import IncrementalEngine
 from .outputs import ScanOutputs
 from .plan import ScanPlan
 from .processing import ViewProcessor

@@ -9,8 +9,8 @@ import json
 import numpy as np
 import pytest
 import trimesh
+from daemon_helpers import MESH_CAMERA, capture_plan, mesh_plan, station_urls, wait_for_state
 from fastapi.testclient import TestClient
-from test_daemon_helpers import MESH_CAMERA, capture_plan, mesh_plan, station_urls, wait_for_state
 
 from capture.daemon.app import create_app
 

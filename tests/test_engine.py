@@ -4,12 +4,13 @@ re-meshing without retraining, and its saved state."""
 import numpy as np
 import pytest
 import trimesh
-from test_patches import hits_per_ray, side_rays
+from surface_checks import hits_per_ray, side_rays
 
-from capture.cloud import VoxelCloud
-from capture.engine import EngineError, IncrementalEngine, refine
+from capture.live.cloud import VoxelCloud
+from capture.live.engine import EngineError, IncrementalEngine, remesh
+from capture.live.patch_fit import fit_fresh, fit_warm
 from capture.plan import ReconstructionParams
-from capture.warm_start import align_embedding, fit_fresh, fit_warm
+from reconstruct.alignment import align_embedding
 from reconstruct.metrics import distance_to_surface, sample_surface
 
 #: Tiny networks and coarse voxels: the engine's logic, not the paper's accuracy, is on test.
@@ -113,28 +114,28 @@ def test_same_views_and_schedule_same_mesh_whatever_the_threads(stream):
     assert every.schedule_run == [3, 6, 9, 12]  # inline never lags, so it skips none
 
 
-def test_refine_remeshes_without_training_and_survives_a_reload(stream, tmp_path):
+def test_remesh_without_training_survives_a_reload(stream, tmp_path):
     _, stream_views = stream
     engine, figures = run_engine(stream_views[:6])
     counts, before, last = dict(engine.cache.counts), engine.mesh, engine.version
-    version = refine(engine, lam=4.0)
+    version = remesh(engine, lam=4.0)
     assert version == last + 1 and figures[-1]["refined"] and figures[-1]["lam"] == 4.0
     assert engine.cache.counts == counts  # nothing was fitted again
     assert len(engine.mesh.faces) > 0 and not np.array_equal(engine.mesh.vertices,
                                                               before.vertices)
     engine.save(tmp_path)
-    path = refine(tmp_path, lam=4.0)
+    path = remesh(tmp_path, lam=4.0)
     assert path.name == "mesh-lam4-depth2.ply"
     again = trimesh.load(path, process=False)
     np.testing.assert_allclose(again.vertices, engine.mesh.vertices, atol=1e-5)
     with pytest.raises(EngineError, match="no saved reconstruction"):
-        refine(tmp_path / "nothing")
+        remesh(tmp_path / "nothing")
 
 
-def test_refine_before_any_mesh_is_an_error():
+def test_remesh_before_any_mesh_is_an_error():
     engine = IncrementalEngine(FAST, background=False)
-    with pytest.raises(EngineError, match="nothing to refine"):
-        engine.refine(lam=2.0)
+    with pytest.raises(EngineError, match="nothing to re-mesh"):
+        engine.remesh(lam=2.0)
 
 
 def test_alignment_recovers_a_rotation_with_reflection():

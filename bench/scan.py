@@ -143,7 +143,7 @@ def main() -> None:
     shape = runner.image_shape
     visible = visible_samples(truth, runner.station.calibration, runner.plan.angles, shape,
                               runner.plan.volume)
-    raw = np.concatenate(runner._raw_points)
+    raw = np.concatenate(runner.engine.view_points)
     peer = poisson_row(runner, visible, truth, raw)
     if peer:
         rows.append(peer)

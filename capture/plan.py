@@ -38,7 +38,7 @@ class ReconstructionParams:
         (`reconstruct.patches.PatchSplit`).
     polish_epochs, polish_patience, polish_train_points : the final fine-tuning of every patch
         after the last view (longer, on up to this many samples: measured to beat a fresh fit;
-        patience 12 rather than 20: a 36-view scan 59 → 53 s, denoise 0.49 → 0.54, bench/scan.py).
+        patience 12 rather than 20: a 36-view scan faster and denoised better, bench/scan.py).
     update_every : update the mesh after this many new views (0: only at the end).
     min_growth : a patch is first fitted once its coverage grew less than this fraction between
         two updates, and refitted when it grew by this fraction since its fit.

@@ -252,10 +252,12 @@ def empty_mesh() -> trimesh.Trimesh:
     return trimesh.Trimesh(np.empty((0, 3)), np.empty((0, 3), dtype=int), process=False)
 
 
-class PatchReconstructor(PatchSplit):
-    """Reconstruct a closed (360°) object-frame cloud as trimmed disc patches merged into one mesh.
+class PatchReconstructor(BaseEstimator):
+    """Reconstruct a closed (360°) object-frame cloud as trimmed disc patches merged into one mesh:
+    `PatchSplit.split`, one reconstruction per patch, `trim`, `merge`.
 
-    Parameters as `PatchSplit`, and:
+    n_sectors, overlap_deg, start_deg, cap, cap_fraction, cap_overlap_mm, min_points : the
+        split (`PatchSplit`); a patch with fewer than ``min_points`` points is an error.
     reconstructor : estimator with ``fit(points (n, 3))`` and ``mesh_`` (cloned per patch), or a
         callable ``f(random_state)`` returning one; None: the paper's `SurfaceReconstructor`.
     random_state : seed handed to each patch's reconstructor.
@@ -277,10 +279,14 @@ class PatchReconstructor(PatchSplit):
         min_points: int = 50,
         random_state=0,
     ):
-        super().__init__(n_sectors=n_sectors, overlap_deg=overlap_deg, start_deg=start_deg,
-                         cap=cap, cap_fraction=cap_fraction, cap_overlap_mm=cap_overlap_mm,
-                         min_points=min_points)
+        self.n_sectors = n_sectors
+        self.overlap_deg = overlap_deg
+        self.start_deg = start_deg
+        self.cap = cap
+        self.cap_fraction = cap_fraction
+        self.cap_overlap_mm = cap_overlap_mm
         self.reconstructor = reconstructor
+        self.min_points = min_points
         self.random_state = random_state
 
     def _new_reconstructor(self):
@@ -292,8 +298,11 @@ class PatchReconstructor(PatchSplit):
 
     def fit(self, points, y=None):
         """Reconstruct (n, 3) object-frame points (z up the axis, mm); returns self."""
-        points = self.check(points)
-        layout = self.split(points)
+        split = PatchSplit(n_sectors=self.n_sectors, overlap_deg=self.overlap_deg,
+                           start_deg=self.start_deg, cap=self.cap, cap_fraction=self.cap_fraction,
+                           cap_overlap_mm=self.cap_overlap_mm, min_points=self.min_points)
+        points = split.check(points)
+        layout = split.split(points)
         meshes = []
         for patch in layout.patches:
             n = int(patch.mask.sum())

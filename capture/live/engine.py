@@ -65,6 +65,7 @@ class IncrementalEngine:
         more than one update behind the turntable.
     Attributes: ``mesh`` (trimesh.Trimesh or None), ``version`` (0 until the first mesh),
     ``figures`` (dict of the last update), ``cloud`` (`VoxelCloud`), ``views`` (count),
+    ``view_points`` (each view's (n, 3) points as added, for the quality report),
     ``schedule_run`` (view counts of the updates run so far, the final one excluded).
     """
 
@@ -84,6 +85,7 @@ class IncrementalEngine:
         self.version = 0
         self.figures: dict = {}
         self.views = 0
+        self.view_points: list[np.ndarray] = []
         self.error: BaseException | None = None
         self._last_update = 0  # views at the last scheduled update
         self._fitted_points: np.ndarray | None = None
@@ -108,6 +110,7 @@ class IncrementalEngine:
     def add_view(self, points) -> bool:
         """Merge one view's (n, 3) object-frame points, mm; True when it scheduled an update."""
         self.cloud.add(points)
+        self.view_points.append(points)
         self.views += 1
         p = self.params
         if self.schedule is not None:

@@ -228,7 +228,7 @@ class IncrementalEngine:
         lam = self.params.lam if lam is None else float(lam)
         depth = self.params.depth if depth is None else int(depth)
         started = time.perf_counter()
-        patches = self.patches.remesh(lam, depth)
+        patches = self.patches.remesh(self._fitted_points, lam, depth)
         self._publish(patches.mesh, self._fitted_points, {
             "views": self.figures.get("views", self.views), "final": True, "lam": lam,
             "depth": depth, "points": len(self._fitted_points), "refined": True,
@@ -265,7 +265,6 @@ class IncrementalEngine:
             model = SurfaceReconstructor.load(source / f"patch-{i}.npz")
             engine.cache.fits[name] = PatchFit(model, "", 0)
         engine._fitted_points = points
-        engine.patches.restore(points)
         engine.version = int(meta["version"])
         engine.figures = dict(meta.get("figures", {}))
         return engine

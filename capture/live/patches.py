@@ -8,7 +8,8 @@ less than ``min_growth`` since the previous update) and a sector's reached ``REA
 the largest sector's: a first fit on a partly seen patch picks a poor network that later
 fine-tuning does not repair (measured), so it waits; at the end every patch with enough points
 is fitted. `LivePatches.remesh` re-meshes every stored fit through ONNX (new λ / depth, no
-training) and merges them on the last update's split.
+training) and merges them on the split of the points they were fitted to (kept from the update
+that made them: a λ slider never re-splits the cloud).
 """
 
 from __future__ import annotations
@@ -54,14 +55,15 @@ class LivePatches:
         self.split = PatchSplit(n_sectors=p.n_sectors, overlap_deg=p.overlap_deg,
                                 cap_fraction=p.cap_fraction, cap_overlap_mm=p.cap_overlap_mm,
                                 min_points=p.min_patch_points)
-        self.layout: PatchLayout | None = None  # the last update's split
+        self.layout: PatchLayout | None = None  # the last split, of ``self._split_points``
+        self._split_points: np.ndarray | None = None
         self._seen: dict[str, int] = {}  # coverage of each patch at the previous update
 
     def update(self, points, final: bool, executor=None) -> PatchUpdate:
         """Fit what needs fitting for (n, 3) object-frame points (on ``executor`` when given),
         then trim and merge the fits."""
+        self._split_once(points)
         points = self.split.check(points)
-        self.layout = self.split.split(points)
         cell = 2 * self.cache.params.voxel_mm
         present = [PatchPoints(patch.name, points[patch.mask],
                                coverage_cells(points[patch.mask], cell), patch.is_cap)
@@ -74,15 +76,19 @@ class LivePatches:
         self.cache.run(jobs, executor)  # a failed patch keeps its earlier fit, if any
         return self._merged(ready)
 
-    def restore(self, points) -> None:
-        """Split (n, 3) points again: the layout of a reloaded scan, for `remesh`."""
-        self.layout = self.split.split(points)
-
-    def remesh(self, lam: float, depth: int) -> PatchUpdate:
-        """Re-mesh every stored fit with a new λ / depth and merge them (no training)."""
+    def remesh(self, points, lam: float, depth: int) -> PatchUpdate:
+        """Re-mesh every stored fit with a new λ / depth and merge them on the split of the
+        (n, 3) ``points`` they were fitted to (no training)."""
+        self._split_once(points)
         for fit in self.cache.fits.values():
             fit.model.remesh(lam=lam, depth=depth)
         return self._merged(set(self.cache.fits))
+
+    def _split_once(self, points) -> None:
+        """Split ``points`` unless the current layout is theirs (the same array)."""
+        if points is not self._split_points:
+            self.layout = self.split.split(points)
+            self._split_points = points
 
     def ready(self, present: list[PatchPoints], final: bool) -> tuple[set[str], set[str]]:
         """(patches to fit now, patches that stopped growing). To fit: all at the end; else

@@ -35,7 +35,7 @@ import httpx
 import numpy as np
 
 from capture.recording import read_recording
-from capture.replay import replay_plan, replay_station
+from capture.replay import replay_plan
 from capture.runner import ScanRunner
 
 
@@ -164,7 +164,7 @@ def replayed_views(folder: Path, out_dir: Path) -> tuple[str, int]:
 
     recording = read_recording(folder)
     plan = dataclasses.replace(replay_plan(recording), reconstruction=None)
-    runner = ScanRunner(plan, out_dir=out_dir, station=replay_station(recording), record=False)
+    runner = ScanRunner(plan, out_dir=out_dir, replay=recording, record=False)
     state = runner.start().wait()
     return state, sum(d.kind == "view" for d in runner.documents)
 

@@ -22,7 +22,8 @@ import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
 from capture.calibration import Calibration  # noqa: E402
-from capture.processing import Cylinder, ViewProcessor  # noqa: E402
+from capture.processing import ViewProcessor  # noqa: E402
+from capture.volume import Cylinder  # noqa: E402
 
 K = np.array([[440.0, 0.0, 320.0], [0.0, 440.0, 200.0], [0.0, 0.0, 1.0]])
 SHAPE = (400, 640)

@@ -55,7 +55,7 @@ def remesh_ms(engine, repeats: int = 5) -> list[float]:
     times = []
     for lam in (0.5, 2.0, 4.0, 1.5, 3.0)[:repeats]:
         started = time.perf_counter()
-        engine.refine(lam=lam)
+        engine.remesh(lam=lam)
         times.append(1000 * (time.perf_counter() - started))
     return times
 
@@ -143,7 +143,7 @@ def main() -> None:
     shape = runner.image_shape
     visible = visible_samples(truth, runner.station.calibration, runner.plan.angles, shape,
                               runner.plan.volume)
-    raw = np.concatenate(runner._raw_points)
+    raw = np.concatenate(runner.engine.view_points)
     peer = poisson_row(runner, visible, truth, raw)
     if peer:
         rows.append(peer)

@@ -4,8 +4,9 @@ States (bluesky's run engine): idle → running ⇄ paused → stopping → done
 `RunLifecycle` owns the state (every change goes through `TRANSITIONS`; anything else raises
 `InvalidTransition`), the pause / resume / cancel requests the worker honours at its
 checkpoints, and the document stream: each document is numbered, kept in ``documents`` and sent
-to the recorder first (a recording that fails stops the scan) and then to every subscriber (a
-failing subscriber is logged and skipped).
+to the recorder first (a recording that fails stops the scan), then to the run's own writers
+(``scan.json``: `capture.report.ScanReport`) and then to every subscriber (a failing subscriber
+is logged and skipped).
 """
 
 from __future__ import annotations
@@ -58,6 +59,7 @@ class RunLifecycle:
         self._changed = threading.Condition(self._lock)
         self._subscribers: list = []
         self._recorder = None
+        self._writers: list = []  # after the recorder, before the subscribers
         self._pause_requested = threading.Event()
         self._resume_requested = threading.Event()
         self._cancel_requested = threading.Event()
@@ -91,7 +93,7 @@ class RunLifecycle:
         with self._lock:
             document = cls(seq=len(self.documents), time=time.time(), **fields)
             self.documents.append(document)
-            subscribers = list(self._subscribers)
+            subscribers = [*self._writers, *self._subscribers]
             if self._recorder is not None:
                 subscribers.insert(0, self._recorder)
             for callback in subscribers:
@@ -103,8 +105,6 @@ class RunLifecycle:
                         raise OutputError(f"recording to {callback.path} failed: {exc}") from exc
                     log.warning("subscriber %r failed on %s: %s", callback, cls.kind, exc)
         return document
-
-    # -- requests ------------------------------------------------------------------------------
 
     # -- requests ---------------------------------------------------------------------------------
     def pause(self) -> None:

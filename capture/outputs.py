@@ -1,32 +1,25 @@
 """A scan's output folder: checked before the scan moves, written atomically at its end.
 
 Files: ``recording.mcap`` (and later segments; `capture.recording`), ``mesh.ply`` (the final
-mesh), ``engine/`` (the re-meshable fits, `capture.engine.refine`), ``scan.json`` (plan,
+mesh), ``engine/`` (the re-meshable fits, `capture.live.engine.remesh`), ``scan.json`` (plan,
 calibration, station, state and reason, timings, mesh figures, quality against the simulated
-object's true surface when there is one).
+object's true surface when there is one; written by `capture.report.ScanReport`).
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import shutil
 import tempfile
-import time
 from pathlib import Path
-
-import numpy as np
 
 from reconstruct.io import write_bytes_atomic
 
 from .plan import ScanPlan
-from .quality import surface_quality, visible_samples
-from .station import true_surface
 
 log = logging.getLogger(__name__)
 
-FORMAT = "scanstation-scan/1"
 #: Bytes per depth pixel in the recording before compression (uint16 as base64) …
 RECORDED_BYTES_PER_PIXEL = 8 / 3
 #: … plus room for the mesh, the engine state and the report.
@@ -77,58 +70,21 @@ class ScanOutputs:
         self.files["engine"] = str(path)
         return path
 
-    def write_report(self, runner, state: str) -> dict[str, str]:
-        """Write scan.json for ``runner`` ending in ``state``; returns the files written."""
-        engine = runner.engine
-        report = {
-            "format": FORMAT,
-            "scan_id": runner.scan_id,
-            "state": state,
-            "reason": runner.reason,
-            "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "views_done": runner._views_done,
-            "views_total": runner.plan.n_views,
-            "plan": runner.plan.to_dict(),
-            "calibration": json.loads(runner.station.calibration.to_json()),
-            "station": runner.station.describe(),
-            "timing": {
-                "capture_s": getattr(runner, "_capture_s", None),
-                "final_mesh_s": getattr(runner, "_final_mesh_s", None),
-                "total_s": time.monotonic() - runner._started,
-            },
-            "mesh": engine.figures if engine is not None else None,
-            "quality": None,
-        }
-        if state == "done" and engine is not None and engine.mesh is not None:
-            report["quality"] = self.quality(runner)
+    @property
+    def report_path(self) -> Path:
+        return self.directory / "scan.json"
+
+    def segments(self) -> list[Path]:
+        """The recording's segments in the folder (none for a replay)."""
         from .recording import segment_paths
 
-        if self.directory.is_dir():
-            segments = segment_paths(self.directory)
-            if segments:
-                self.files["recording"] = str(segments[0])
-                report["segments"] = [str(p) for p in segments]
-        self.files["report"] = str(self.directory / "scan.json")
-        report["files"] = dict(self.files)
-        write_bytes_atomic(self.directory / "scan.json", json.dumps(report, indent=1).encode())
-        return dict(self.files)
+        return segment_paths(self.directory) if self.directory.is_dir() else []
 
-    def quality(self, runner) -> dict | None:
-        """Figures against the simulated object's true surface (None for real objects)."""
-        truth = true_surface(runner.station.camera_url)
-        if truth is None:
-            return None
-        started = time.perf_counter()
-        shape = getattr(runner, "image_shape", None)
-        if shape is None:
-            k = runner.station.calibration.intrinsics
-            shape = (int(round(2 * k[1, 2])), int(round(2 * k[0, 2])))
-        visible = visible_samples(truth, runner.station.calibration, runner.plan.angles, shape,
-                                  runner.plan.volume)
-        raw = np.concatenate(runner._raw_points) if runner._raw_points else None
-        figures = surface_quality(runner.engine.mesh, runner.engine.fitted_points, truth,
-                                  visible, raw)
-        log.info("quality against the true surface: completeness %.1f %% within %.2f mm, "
-                 "denoise ratio %.2f (%.1f s)", 100 * figures["completeness_visible"],
-                 figures["tau_mm"], figures["denoise_ratio"], time.perf_counter() - started)
-        return figures
+    def final_files(self) -> dict[str, str]:
+        """The files the scan leaves: those written, the recording, and the report
+        (`capture.report.ScanReport` writes it on the stop document that lists them)."""
+        segments = self.segments()
+        if segments:
+            self.files["recording"] = str(segments[0])
+        self.files["report"] = str(self.report_path)
+        return dict(self.files)

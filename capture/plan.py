@@ -12,7 +12,7 @@ import json
 import math
 from typing import Any
 
-from .processing import Cylinder
+from .volume import Cylinder
 
 FORMAT = "scanstation-plan/1"
 COMBINE_METHODS = ("median", "mean", "first")
@@ -25,20 +25,20 @@ class PlanError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class ReconstructionParams:
-    """How the incremental engine reconstructs (see `capture.engine.IncrementalEngine`).
+    """How the incremental engine reconstructs (see `capture.live.engine.IncrementalEngine`).
 
     lam, depth : spline smoothing λ and boundary path depths (re-meshing changes them cheaply).
     seed : random seed of every fit (same seed, same views → same mesh).
     max_layers, max_neurons, max_epochs, final_epochs, max_train_points : the adaptive MLP's
         search limits (`reconstruct.mlp.AdaptiveMLP`); the search runs on the first patches
-        only, the others train the architecture it found (`capture.fixed_mlp`).
+        only, the others train the architecture it found (`capture.live.patch_fit`).
     voxel_mm : voxel of the merged cloud, mm; min_views : views that must see a voxel before it
         is used (1 keeps stray single-view points; 2 drops them).
     n_sectors, overlap_deg, cap_fraction, cap_overlap_mm : closed-object patches
-        (`capture.patches.PatchReconstructor`).
+        (`reconstruct.patches.PatchSplit`).
     polish_epochs, polish_patience, polish_train_points : the final fine-tuning of every patch
         after the last view (longer, on up to this many samples: measured to beat a fresh fit;
-        patience 12 rather than 20: a 36-view scan 59 → 53 s, denoise 0.49 → 0.54, bench/scan.py).
+        patience 12 rather than 20: a 36-view scan faster and denoised better, bench/scan.py).
     update_every : update the mesh after this many new views (0: only at the end).
     min_growth : a patch is first fitted once its coverage grew less than this fraction between
         two updates, and refitted when it grew by this fraction since its fit.

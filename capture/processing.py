@@ -9,25 +9,16 @@ from __future__ import annotations
 
 import functools
 import logging
-from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from reconstruct.errors import InvalidInputError
 from reconstruct.outliers import statistical_outlier_mask
 
-if TYPE_CHECKING:
-    from .calibration import Calibration
+from .calibration import Calibration
+from .volume import Cylinder
 
 log = logging.getLogger(__name__)
-
-
-class Cylinder(NamedTuple):
-    """The working volume about the axis in the table frame, mm (same fields as `WorkingVolume`)."""
-
-    radius_mm: float
-    z_min_mm: float
-    z_max_mm: float
 
 
 @functools.lru_cache(maxsize=8)
@@ -119,8 +110,9 @@ class ViewProcessor:
     """Turn one depth frame into object-frame points: back-project, move, crop, thin, clean.
 
     calibration : `Calibration` (intrinsics and camera → table transform).
-    volume : working cylinder about the axis (`WorkingVolume` or `Cylinder`), mm; its ``z_min_mm``
-        should sit a few mm above the plate so the plate is cut away with the background.
+    volume : working cylinder about the axis (`Cylinder` or a tuple of its fields), mm; its
+        ``z_min_mm`` should sit a few mm above the plate so the plate is cut away with the
+        background.
     voxel_mm : voxel edge of the downsampling grid, mm (None or 0: no downsampling).
     outlier_neighbors, outlier_std : statistical outlier removal (neighbors 0: off).
     """

@@ -15,7 +15,8 @@ import trimesh
 from reconstruct.metrics import distance_to_surface, sample_surface
 
 from .calibration import Calibration
-from .processing import Cylinder, project_points
+from .processing import project_points
+from .volume import Cylinder
 
 TAU_FRACTION = 0.01
 

@@ -6,6 +6,12 @@ pixel, record (the view's chunk is synced), process, feed the engine, emit docum
 device (`DeviceDisconnected`, `DeviceTimeout`) pauses the scan with a message, reconnects with
 backoff for ``plan.reconnect_timeout_s``, then resumes at the view it was on; views already
 recorded are never redone or lost. `pause()` takes effect between views or frames.
+
+Recorded views take one path: a resumed scan feeds its recorded views through the same per-view
+step as captured ones, without announcing them again (their documents are in the recording it
+continues); a replay (``replay=``, `capture.replay.replay_runner`) feeds every view of a
+recording through it and announces them, with no device. ``scan.json`` is written by a document
+subscriber (`capture.report.ScanReport`).
 """
 
 from __future__ import annotations
@@ -30,7 +36,6 @@ from .documents import (
     StopDocument,
     ViewDocument,
 )
-from .engine import IncrementalEngine
 from .lifecycle import (  # noqa: F401  (re-exported: the runner's public names)
     TERMINAL,
     TRANSITIONS,
@@ -39,11 +44,13 @@ from .lifecycle import (  # noqa: F401  (re-exported: the runner's public names)
     InvalidTransition,
     RunLifecycle,
 )
+from .live.engine import IncrementalEngine
 from .outputs import ScanOutputs
 from .plan import ScanPlan
 from .processing import ViewProcessor
-from .recording import RecordingWriter, next_segment, read_recording, segment_paths
-from .station import Station, open_station
+from .recording import Recording, RecordingWriter, next_segment, read_recording, segment_paths
+from .report import ScanReport
+from .station import Station, open_station, recorded_station
 
 log = logging.getLogger(__name__)
 
@@ -61,10 +68,11 @@ class ScanRunner(RunLifecycle):
 
     plan : `ScanPlan` (None: the resumed recording's, else the default 36-view plan).
     camera_url, turntable_url, object : the station (`capture.station.open_station`); or
-        ``station``: an open `Station` (e.g. `capture.replay.replay_station`), owned and closed.
+        ``station``: an open `Station`, owned and closed.
     out_dir : folder for recording.mcap, mesh.ply, scan.json.
     resume_from : a scan folder whose recording is replayed into the engine; the remaining
         views are captured into a new segment (``recording-2.mcap``…) in ``out_dir``.
+    replay : a `Recording` whose views are the scan's (no device; `capture.replay`).
     record : write the MCAP recording (replays do not).
     calibration : a `Calibration` or calibration file (default: the simulator's truth, or the
         resumed recording's).  seed : simulated camera noise seed.
@@ -75,13 +83,14 @@ class ScanRunner(RunLifecycle):
     def __init__(self, plan: ScanPlan | None = None, camera_url=None, turntable_url=None,
                  object=None, out_dir="scan", resume_from=None, *, station: Station | None = None,
                  calibration=None, record: bool = True, seed: int = 0, workers: int = 1,
-                 schedule=None):
+                 schedule=None, replay: Recording | None = None):
         self.out_dir = Path(resume_from if resume_from is not None and out_dir == "scan"
                             else out_dir)
         self.resume_from = None if resume_from is None else Path(resume_from)
         self._plan = plan
         self._station_args = (camera_url, turntable_url, object, calibration, seed)
         self.station = station
+        self.replay = replay
         self.record = record
         self.workers = workers
         self.schedule = schedule
@@ -128,8 +137,12 @@ class ScanRunner(RunLifecycle):
     # -- preparation (before anything moves) ----------------------------------------------------
     def _prepare(self) -> None:
         camera_url, turntable_url, object, calibration, seed = self._station_args
-        recorded = []
-        if self.resume_from is not None:
+        recorded, self._announce_recorded = [], self.replay is not None
+        if self.replay is not None:
+            recorded = self.replay.views
+            if self.station is None:
+                self.station = recorded_station(self.replay)
+        elif self.resume_from is not None:
             recording = read_recording(self.resume_from)
             self._plan = self._plan or recording.plan
             calibration = calibration or recording.calibration
@@ -146,12 +159,12 @@ class ScanRunner(RunLifecycle):
         self.outputs.check_writable()
         if self.station is None:
             self.station = open_station(camera_url, turntable_url, object, calibration, seed)
-        self.outputs.check_space(self.plan, self.station.camera.intrinsics, self.record)
+        self.outputs.check_space(self.plan, self.station.intrinsics, self.record)
         done = {v.index for v in recorded}
         self._recorded = recorded
-        self._pending = [i for i in range(self.plan.n_views) if i not in done]
-        self._views_done = len(recorded)
-        self._raw_points: list = []
+        self._pending = [] if self.replay is not None else \
+            [i for i in range(self.plan.n_views) if i not in done]
+        self._views_done = 0 if self._announce_recorded else len(recorded)
         self.processor = ViewProcessor(
             self.station.calibration, self.plan.volume, voxel_mm=self.plan.voxel_mm,
             outlier_neighbors=self.plan.outlier_neighbors, outlier_std=self.plan.outlier_std)
@@ -159,6 +172,10 @@ class ScanRunner(RunLifecycle):
             self.engine = IncrementalEngine(self.plan.reconstruction, on_mesh=self._on_mesh,
                                             workers=self.workers, total_views=self.plan.n_views,
                                             schedule=self.schedule)
+        unannounced = recorded and not self._announce_recorded
+        self._writers.append(ScanReport(self.outputs, self.engine, started=self._started,
+                                        image_shape=recorded[-1].frames[0].shape
+                                        if unannounced else None))
         if self.record:
             self.segment, path = next_segment(self.out_dir)
             self._recorder = RecordingWriter(
@@ -182,12 +199,12 @@ class ScanRunner(RunLifecycle):
             self._emit(StartDocument, scan_id=self.scan_id, plan=self.plan.to_dict(),
                        calibration=json.loads(self.station.calibration.to_json()),
                        station=self.station.describe(), segment=self.segment,
-                       resumed_views=len(self._recorded))
+                       resumed_views=0 if self._announce_recorded else len(self._recorded))
             self._feed_recorded()
             for index in self._pending:
                 measured, frames = self._capture_with_recovery(index)
-                self._complete_view(index, measured, frames)
-            self._capture_s = time.monotonic() - self._started
+                self._complete_view(index, measured, [f.depth for f in frames],
+                                    [f.timestamp for f in frames])
             self._transition("stop")
             self._finish()
             self._end("done", f"all {self.plan.n_views} views captured")
@@ -206,18 +223,21 @@ class ScanRunner(RunLifecycle):
             self._close()
 
     def _feed_recorded(self) -> None:
-        """Resume: the recorded views go through processing and the engine, in their order."""
-        for view in self._recorded:
-            self.image_shape = view.frames[0].shape
-            combined = combine_depths(view.frames, self.plan.combine)
-            self._process(combined, view.measured_angle_deg)
-        if self._recorded:
+        """The recorded views, in their order, through the per-view step: announced in a
+        replay (which may be paused or cancelled between them), silently in a resume."""
+        announce = self._announce_recorded
+        for index, view in enumerate(self._recorded):
+            if announce:
+                self._checkpoint(index)
+            frames = view.frames[: self.plan.frames_per_view] if announce else view.frames
+            self._complete_view(index, view.measured_angle_deg, frames,
+                                view.timestamps[: len(frames)], announce=announce)
+        if self._recorded and not announce:
             log.info("resumed %d recorded views; %d to capture", len(self._recorded),
                      len(self._pending))
 
     def _process(self, combined, angle_deg: float) -> int:
         points = self.processor.process(combined, angle_deg)
-        self._raw_points.append(points)
         if self.engine is not None:
             self.engine.add_view(points)
         return len(points)
@@ -287,14 +307,18 @@ class ScanRunner(RunLifecycle):
                 raise Cancelled
             delay = min(2 * delay, 2.0)
 
-    def _complete_view(self, index: int, measured: float, frames) -> None:
-        depths = [f.depth for f in frames]
+    def _complete_view(self, index: int, measured: float, depths, timestamps,
+                       announce: bool = True) -> None:
+        """Combine, (announce,) process and merge one view: (H, W) depth frames, mm."""
         self.image_shape = depths[0].shape
         combined = combine_depths(depths, self.plan.combine)
+        if not announce:
+            self._process(combined, measured)
+            return
         self._emit(ViewDocument, index=index, angle_deg=self.plan.angles[index],
-                   measured_angle_deg=measured, n_frames=len(frames),
+                   measured_angle_deg=measured, n_frames=len(depths),
                    valid_pixels=int((combined > 0).sum()),
-                   timestamps=tuple(float(f.timestamp) for f in frames), frames=tuple(depths))
+                   timestamps=tuple(float(t) for t in timestamps), frames=tuple(depths))
         self._views_done += 1
         n_points = self._process(combined, measured)
         self._emit(ProgressDocument, views_done=self._views_done, views_total=self.plan.n_views,
@@ -310,9 +334,7 @@ class ScanRunner(RunLifecycle):
     def _finish(self) -> None:
         if self.engine is None:
             return
-        started = time.monotonic()
         mesh = self.engine.finish()
-        self._final_mesh_s = time.monotonic() - started
         if mesh is None:
             raise CaptureError("no mesh: too few points in the working volume (is the object "
                                "inside it?)")
@@ -328,10 +350,10 @@ class ScanRunner(RunLifecycle):
             if self.engine is not None and state != "done":
                 self.engine.cancel()
             files = {}
-            try:
-                files = self.outputs.write_report(self, state)
+            try:  # scan.json itself is written by `ScanReport` on the stop document
+                files = self.outputs.final_files()
             except Exception as exc:
-                log.error("could not write scan.json: %s", exc)
+                log.error("could not list the scan's files: %s", exc)
             self._emit(StopDocument, state=state, reason=reason, views_done=self._views_done,
                        views_total=self.plan.n_views, files=files)
         except Exception as exc:

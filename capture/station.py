@@ -66,13 +66,19 @@ def station_urls(camera_url=None, turntable_url=None, object=None, seed: int = 0
 
 @dataclasses.dataclass
 class Station:
-    """Open devices and their calibration. ``close()`` is safe to repeat."""
+    """Open devices and their calibration. ``close()`` is safe to repeat. A recorded station
+    (`recorded_station`) has no devices: its views come from a recording."""
 
-    camera: DepthCamera
-    turntable: Turntable
+    camera: DepthCamera | None
+    turntable: Turntable | None
     calibration: Calibration
     camera_url: str
     turntable_url: str
+
+    @property
+    def intrinsics(self):
+        """(3, 3) the camera's pinhole matrix (the calibration's without a camera)."""
+        return self.calibration.intrinsics if self.camera is None else self.camera.intrinsics
 
     def describe(self) -> dict:
         return {"camera": self.camera_url, "turntable": self.turntable_url,
@@ -91,6 +97,8 @@ class Station:
 
     def close(self) -> None:
         for device in (self.camera, self.turntable):
+            if device is None:
+                continue
             try:
                 device.close()
             except Exception as exc:  # closing must not hide the scan's own outcome
@@ -108,6 +116,13 @@ def follow_turntable(camera: DepthCamera, turntable: Turntable) -> None:
     GRBL board: hardware in the loop); other cameras see the real table anyway."""
     if hasattr(camera, "follow"):
         camera.follow(turntable)
+
+
+def recorded_station(recording) -> Station:
+    """The station a `capture.recording.Recording` was made on, without devices: its recorded
+    calibration, and its camera URL (so that a simulated object's truth is still found)."""
+    return Station(None, None, recording.calibration,
+                   recording.station.get("camera", "replay://camera"), "replay://turntable")
 
 
 def open_station(camera_url=None, turntable_url=None, object=None, calibration=None,

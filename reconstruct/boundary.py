@@ -1,5 +1,6 @@
 """Boundary interpolants of a 2D embedding: the paper's multi-depth path sampling and the
-Yumer–Kara baseline (PCA corners, outermost polyline).
+Yumer–Kara baseline (PCA corners, outermost polyline). (About 400 lines: the two samplers share
+the wedge geometry and path search below, which would be split across files by one caller.)
 
 Both trace corner-to-corner shortest paths (Dijkstra) over k-nearest-neighbour graphs of the
 points in the angular wedge between two adjacent corners, seen from the centroid. The paper

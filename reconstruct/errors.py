@@ -25,3 +25,8 @@ class NotFittedError(ReconstructionError, AttributeError):
 
 class ReconstructionWarning(UserWarning):
     """Input was repaired (points dropped, a piece discarded); the result may differ."""
+
+
+class WarmStartRefused(ReconstructionError):
+    """A warm start cannot be used: too few points shared with the earlier fit, embeddings that
+    disagree, or an earlier fit without its network (loaded from disk). Fit afresh instead."""

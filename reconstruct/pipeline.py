@@ -2,11 +2,14 @@
 
 A fitted reconstruction keeps the embedded points and the ONNX surface map, so `remesh` with a
 new λ, boundary depth or grid spacing runs in milliseconds without retraining, and `save` /
-`load` carry that state to another process.
+`load` carry that state to another process. ``fit(points, warm_start=earlier)`` fits the same
+surface again after more points arrived: the new embedding is aligned to the earlier one
+(`reconstruct.alignment`) and the earlier network fine-tuned, with no architecture search.
 """
 
 from __future__ import annotations
 
+import copy
 import io
 import json
 import logging
@@ -17,11 +20,12 @@ from pathlib import Path
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
-from sklearn.base import BaseEstimator
+from sklearn.base import BaseEstimator, clone
 
+from .alignment import align_to
 from .boundary import MultiDepthBoundary, PCABoundary
 from .embedding import SurfaceEmbedding
-from .errors import InvalidInputError, NotFittedError
+from .errors import InvalidInputError, NotFittedError, WarmStartRefused
 from .io import write_bytes_atomic
 from .meshing import default_spacing, mesh_inside, sample_ring
 from .mlp import AdaptiveMLP
@@ -42,6 +46,8 @@ DEFAULT_LAM = 1.0
 DEFAULT_DEPTH = 2
 STATE_FORMAT = "scanstation-reconstruction/1"
 _MESH_PARAMS = ("lam", "depth", "n_corners", "boundary", "grid_spacing", "variance", "extend")
+#: Training-only parameters: not saved (a loaded reconstruction re-meshes, it does not train).
+_TRAINING_PARAMS = ("mlp", "fine_tune", "warm_tolerance")
 
 
 class SurfaceReconstructor(BaseEstimator):
@@ -66,8 +72,16 @@ class SurfaceReconstructor(BaseEstimator):
         network has data; "border" out to the sampled region's estimated true border (more
         complete, but the network extrapolates there); a number; 0 meshes the spline as fitted.
     random_state : seed; the same seed gives the same mesh.
+    mlp : an unfitted `AdaptiveMLP` (cloned by `fit`) used instead of the one ``max_layers``,
+        ``max_neurons``, ``activation``, ``retrain`` and ``random_state`` describe: other
+        training budgets, or ``hidden_layers`` to skip the search.
+    fine_tune : `AdaptiveMLP` parameters set on a warm start's network before it is fine-tuned
+        (e.g. ``{"final_epochs": 300, "patience": 12}``; None: as the earlier fit had them).
+    warm_tolerance : distance (input units) within which a point counts as one a warm start's
+        earlier fit saw; None: the earlier points' median nearest-neighbour spacing.
 
     Fitted attributes: ``embedding_`` (m, 2), ``points_`` (m, 3) the points it was fitted to,
+    ``mlp_`` (`AdaptiveMLP`; not after `load`), ``embedding_method_``, ``n_neighbors_``,
     ``surface_map_`` (OnnxSurfaceMap), ``hidden_layers_``, ``mesh_`` (trimesh.Trimesh),
     ``boundary_points_`` (k, 2), ``spline_`` (BoundarySpline), ``vertices_2d_`` (v, 2).
     """
@@ -88,6 +102,9 @@ class SurfaceReconstructor(BaseEstimator):
         random_state: int | None = 0,
         variance: str = "local",
         extend: float | str = "auto",
+        mlp=None,
+        fine_tune: dict | None = None,
+        warm_tolerance: float | None = None,
     ):
         self.lam = lam
         self.depth = depth
@@ -103,26 +120,41 @@ class SurfaceReconstructor(BaseEstimator):
         self.random_state = random_state
         self.variance = variance
         self.extend = extend
+        self.mlp = mlp
+        self.fine_tune = fine_tune
+        self.warm_tolerance = warm_tolerance
 
-    def fit(self, points) -> SurfaceReconstructor:
-        """points : (n, 3) float, any unit. Returns self with ``mesh_`` set."""
+    def fit(self, points, warm_start: SurfaceReconstructor | None = None) -> SurfaceReconstructor:
+        """points : (n, 3) float, any unit. Returns self with ``mesh_`` set.
+
+        warm_start : a fitted reconstruction of the same surface (e.g. from fewer points). Its
+            neighbourhood size is reused, the new embedding aligned to its embedding and its
+            network fine-tuned (``fine_tune``); raises `WarmStartRefused` (nothing changed)
+            when too few points are shared, the embeddings disagree or it has no network."""
         self._check_mesh_params()
         points = check_points(points)
         started = time.perf_counter()
+        n_neighbors = self.n_neighbors
+        if warm_start is not None:
+            if not hasattr(warm_start, "mlp_"):
+                raise WarmStartRefused("the earlier fit has no network (loaded from disk)")
+            n_neighbors = warm_start.n_neighbors_ if n_neighbors is None else n_neighbors
         embedding = SurfaceEmbedding(
-            method=self.embedding, n_neighbors=self.n_neighbors, random_state=self.random_state
+            method=self.embedding, n_neighbors=n_neighbors, random_state=self.random_state
         ).fit(points)
-        self.embedding_ = embedding.embedding_
-        self.points_ = points[embedding.support_]
+        fitted = points[embedding.support_]
+        uv = embedding.embedding_
+        if warm_start is None:
+            mlp = self._new_mlp().fit(uv, fitted)
+        else:
+            uv = align_to(uv, fitted, warm_start.embedding_, warm_start.points_,
+                          self._warm_tolerance(warm_start))
+            mlp = copy.deepcopy(warm_start.mlp_).set_params(**(self.fine_tune or {}))
+            mlp.fine_tune(uv, fitted)
+        self.embedding_ = uv
+        self.points_ = fitted
         self.embedding_method_ = embedding.method_
         self.n_neighbors_ = embedding.n_neighbors_
-        mlp = AdaptiveMLP(
-            max_layers=self.max_layers,
-            max_neurons=self.max_neurons,
-            activation=self.activation,
-            retrain=self.retrain,
-            random_state=self.random_state,
-        ).fit(self.embedding_, self.points_)
         self.mlp_ = mlp
         self.surface_map_ = mlp.surface_map_
         self.hidden_layers_ = tuple(mlp.hidden_layers_)
@@ -140,6 +172,23 @@ class SurfaceReconstructor(BaseEstimator):
         )
         return self
 
+    def _new_mlp(self) -> AdaptiveMLP:
+        if self.mlp is not None:
+            return clone(self.mlp)
+        return AdaptiveMLP(
+            max_layers=self.max_layers,
+            max_neurons=self.max_neurons,
+            activation=self.activation,
+            retrain=self.retrain,
+            random_state=self.random_state,
+        )
+
+    def _warm_tolerance(self, warm_start: SurfaceReconstructor) -> float:
+        if self.warm_tolerance is not None:
+            return float(self.warm_tolerance)
+        distance, _ = cKDTree(warm_start.points_).query(warm_start.points_, k=2)
+        return float(np.median(distance[:, 1]))
+
     def remesh(self, **params) -> trimesh.Trimesh:
         """Re-mesh with new ``lam``, ``depth``, ``n_corners``, ``boundary`` or ``grid_spacing``
         through the stored ONNX map (no retraining). Returns and stores ``mesh_``."""
@@ -148,7 +197,7 @@ class SurfaceReconstructor(BaseEstimator):
             raise InvalidInputError(f"cannot re-mesh with {sorted(unknown)}: not a mesh parameter")
         if not hasattr(self, "surface_map_"):
             raise NotFittedError("fit() the reconstructor (or load() a saved one) first")
-        previous = self.get_params()
+        previous = self.get_params(deep=False)
         self.set_params(**{k: v for k, v in params.items() if v is not None})
         try:
             self._check_mesh_params()
@@ -237,7 +286,8 @@ class SurfaceReconstructor(BaseEstimator):
         path = Path(path)
         meta = {
             "format": STATE_FORMAT,
-            "params": self.get_params(),
+            "params": {k: v for k, v in self.get_params(deep=False).items()
+                       if k not in _TRAINING_PARAMS},
             "embedding_method": self.embedding_method_,
             "n_neighbors": int(self.n_neighbors_),
             "hidden_layers": list(self.hidden_layers_),

@@ -5,8 +5,11 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import threading  # noqa: E402
+import time  # noqa: E402
 
 import pytest  # noqa: E402
+
+from capture.plan import ReconstructionParams  # noqa: E402
 
 
 def pytest_addoption(parser):
@@ -22,21 +25,40 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
+@pytest.fixture(scope="session")
+def fast_params() -> ReconstructionParams:
+    """Tiny networks and coarse voxels: the engine's logic, not the paper's accuracy, on test."""
+    return ReconstructionParams(
+        max_layers=1, max_neurons=5, max_epochs=6, final_epochs=30, max_train_points=400,
+        polish_epochs=40, polish_patience=6, polish_train_points=600, voxel_mm=4.0,
+        min_views=1, n_sectors=3, overlap_deg=20.0, cap_fraction=0.15, cap_overlap_mm=6.0,
+        update_every=3, min_patch_points=40,
+    )
+
+
+#: Our own worker threads are daemon threads (an interpreter may exit under a running scan), so
+#: they are checked by name: the scan runner, the engine, the daemon's reader.
+OWN_DAEMON_THREADS = ("scan-",)
+
+
+def _leaked(before) -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t not in before and t.is_alive()
+            and (not t.daemon or t.name.startswith(OWN_DAEMON_THREADS))]
+
+
 @pytest.fixture(autouse=True)
 def no_leaked_threads():
-    """Every device closes its threads: a test that leaks one fails."""
+    """Every device, runner and engine closes its threads: a test that leaks one fails."""
     before = set(threading.enumerate())
     yield
-    deadline = 2.0
-    import time
-
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < deadline:
-        leaked = [
-            t for t in threading.enumerate() if t not in before and t.is_alive() and not t.daemon
-        ]
-        if not leaked:
-            return
+    deadline = time.monotonic() + 2.0
+    while (leaked := _leaked(before)) and time.monotonic() < deadline:
         time.sleep(0.02)
-    names = ", ".join(t.name for t in leaked)
-    pytest.fail(f"test leaked threads: {names}")
+    if leaked:
+        pytest.fail(f"test leaked threads: {', '.join(t.name for t in leaked)}")
+
+
+@pytest.fixture
+def leaked_threads():
+    """The leak check itself: ``leaked_threads(before)`` lists the threads it would fail on."""
+    return _leaked

@@ -3,15 +3,15 @@
 import numpy as np
 import pytest
 
-from capture.calibration import (
-    Calibration,
-    CalibrationError,
+from capture.axis_calibration import (
     DumbbellTarget,
+    calibrate,
     calibrate_from_views,
     estimate_axis,
     find_spheres,
     fit_circle_3d,
 )
+from capture.calibration import Calibration, CalibrationError
 
 K = np.array([[440.0, 0.0, 320.0], [0.0, 440.0, 200.0], [0.0, 0.0, 1.0]])
 SHAPE = (400, 640)
@@ -187,8 +187,6 @@ def test_too_few_target_detections_names_what_is_missing():
 
 def test_calibrate_the_simulated_station_within_tolerance(tmp_path):
     """Against the sim's true pose, with its depth noise on (station 'calibration')."""
-    pytest.importorskip("sim.camera")
-    from capture.calibration import calibrate
     from drivers.registry import open_camera, open_turntable
 
     path = tmp_path / "dumbbell.stl"

@@ -7,8 +7,8 @@ import os
 import re
 
 import pytest
+from daemon_helpers import capture_plan, station_urls, wait_for_state, wait_until
 from fastapi.testclient import TestClient
-from test_daemon_helpers import capture_plan, station_urls, wait_for_state, wait_until
 
 from capture.daemon.app import create_app
 from capture.recording import read_recording

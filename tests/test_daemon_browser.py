@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_daemon_helpers import MESH_CAMERA, LiveServer, station_urls
+from daemon_helpers import MESH_CAMERA, LiveServer, station_urls
 
 from capture.daemon.app import create_app
 

@@ -7,8 +7,8 @@ import json
 import threading
 
 import httpx
+from daemon_helpers import LiveServer, capture_plan, station_urls, wait_for_state
 from fastapi.testclient import TestClient
-from test_daemon_helpers import LiveServer, capture_plan, station_urls, wait_for_state
 
 from capture.daemon.app import create_app
 from capture.daemon.events import EventChannel, sse_message

@@ -11,7 +11,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
-from test_daemon_helpers import capture_plan, station_urls, wait_until
+from daemon_helpers import capture_plan, station_urls, wait_until
 
 from capture.daemon.isolation import ProcessRunner, RunSpec
 from capture.plan import ScanPlan

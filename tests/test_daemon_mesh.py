@@ -9,8 +9,8 @@ import json
 import numpy as np
 import pytest
 import trimesh
+from daemon_helpers import MESH_CAMERA, capture_plan, mesh_plan, station_urls, wait_for_state
 from fastapi.testclient import TestClient
-from test_daemon_helpers import MESH_CAMERA, capture_plan, mesh_plan, station_urls, wait_for_state
 
 from capture.daemon.app import create_app
 
@@ -115,14 +115,14 @@ def test_no_reprocess_resume_or_delete_while_a_refine_runs(finished):
 
     client, scan, _ = finished
     jobs = client.app.app.state.jobs
-    real, started, release = jobs.refiner.refine, threading.Event(), threading.Event()
+    real, started, release = jobs.refiner.remesh, threading.Event(), threading.Event()
 
-    def slow_refine(*args):
+    def slow_remesh(*args):
         started.set()
         release.wait(30)
         return real(*args)
 
-    jobs.refiner.refine = slow_refine
+    jobs.refiner.remesh = slow_remesh
     answers = []
     worker = threading.Thread(target=lambda: answers.append(client.post(
         f"/api/v1/scans/{scan['id']}/refine", json={"lam": 3.0})))
@@ -136,6 +136,6 @@ def test_no_reprocess_resume_or_delete_while_a_refine_runs(finished):
     finally:
         release.set()
         worker.join(60)
-        jobs.refiner.refine = real
+        jobs.refiner.remesh = real
     assert answers[0].status_code == 200, answers[0].text
     assert client.post(f"/api/v1/scans/{scan['id']}/refine", json={"lam": 2.0}).status_code == 200

@@ -12,7 +12,7 @@ import sys
 import httpx
 import pytest
 import trimesh
-from test_daemon_helpers import MESH_CAMERA, free_port, mesh_plan, station_urls, wait_until
+from daemon_helpers import MESH_CAMERA, free_port, mesh_plan, station_urls, wait_until
 
 from capture.recording import read_recording
 

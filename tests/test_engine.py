@@ -4,21 +4,13 @@ re-meshing without retraining, and its saved state."""
 import numpy as np
 import pytest
 import trimesh
-from test_patches import hits_per_ray, side_rays
+from surface_checks import hits_per_ray, side_rays
 
-from capture.cloud import VoxelCloud
-from capture.engine import EngineError, IncrementalEngine, refine
-from capture.plan import ReconstructionParams
-from capture.warm_start import align_embedding, fit_fresh, fit_warm
+from capture.live.cloud import VoxelCloud
+from capture.live.engine import EngineError, IncrementalEngine, remesh
+from capture.live.patch_fit import fit_fresh, fit_warm
+from reconstruct.alignment import align_embedding
 from reconstruct.metrics import distance_to_surface, sample_surface
-
-#: Tiny networks and coarse voxels: the engine's logic, not the paper's accuracy, is on test.
-FAST = ReconstructionParams(
-    max_layers=1, max_neurons=5, max_epochs=6, final_epochs=30, max_train_points=400,
-    polish_epochs=40, polish_patience=6, polish_train_points=600, voxel_mm=4.0, min_views=1,
-    n_sectors=3, overlap_deg=20.0, cap_fraction=0.15, cap_overlap_mm=6.0, update_every=3,
-    min_patch_points=40,
-)
 
 
 def capped_cylinder() -> trimesh.Trimesh:
@@ -49,9 +41,9 @@ def stream():
     return capped_cylinder(), views(capped_cylinder())
 
 
-def run_engine(stream_views, **kwargs):
+def run_engine(stream_views, params, **kwargs):
     figures = []
-    engine = IncrementalEngine(FAST, on_mesh=lambda e, f: figures.append(f), **kwargs)
+    engine = IncrementalEngine(params, on_mesh=lambda e, f: figures.append(f), **kwargs)
     try:
         for points in stream_views:
             engine.add_view(points)
@@ -75,9 +67,10 @@ def test_voxel_cloud_averages_and_counts_views():
         VoxelCloud(0)
 
 
-def test_meshes_grow_with_the_views_and_the_last_one_is_final(stream):
+def test_meshes_grow_with_the_views_and_the_last_one_is_final(stream, fast_params):
     truth, stream_views = stream
-    engine, figures = run_engine(stream_views, total_views=len(stream_views), background=False)
+    engine, figures = run_engine(stream_views, fast_params, total_views=len(stream_views),
+                                 background=False)
     assert [f["version"] for f in figures] == list(range(1, len(figures) + 1))
     assert len(figures) >= 2 and figures[-1]["final"] and not figures[0]["final"]
     assert figures[0]["views"] < figures[-1]["views"] == 12
@@ -98,43 +91,44 @@ def test_meshes_grow_with_the_views_and_the_last_one_is_final(stream):
     assert np.mean(hits == 1) > 0.99 and hits.max() == 1, np.bincount(hits)
 
 
-def test_same_views_and_schedule_same_mesh_whatever_the_threads(stream):
+def test_same_views_and_schedule_same_mesh_whatever_the_threads(stream, fast_params):
     """A live engine skips updates it could not keep up with; its schedule, replayed inline
     (as `scanstation replay` does from the recording), gives the same mesh."""
     _, stream_views = stream
-    background, figures = run_engine(stream_views)
+    background, figures = run_engine(stream_views, fast_params)
     assert figures[-1]["schedule"] == background.schedule_run
     assert set(background.schedule_run) <= {3, 6, 9}
-    inline, _ = run_engine(stream_views, background=False, schedule=background.schedule_run)
+    inline, _ = run_engine(stream_views, fast_params, background=False,
+                           schedule=background.schedule_run)
     assert inline.schedule_run == background.schedule_run
     np.testing.assert_array_equal(background.mesh.vertices, inline.mesh.vertices)
     np.testing.assert_array_equal(background.mesh.faces, inline.mesh.faces)
-    every, _ = run_engine(stream_views, background=False)
+    every, _ = run_engine(stream_views, fast_params, background=False)
     assert every.schedule_run == [3, 6, 9, 12]  # inline never lags, so it skips none
 
 
-def test_refine_remeshes_without_training_and_survives_a_reload(stream, tmp_path):
+def test_remesh_without_training_survives_a_reload(stream, tmp_path, fast_params):
     _, stream_views = stream
-    engine, figures = run_engine(stream_views[:6])
+    engine, figures = run_engine(stream_views[:6], fast_params)
     counts, before, last = dict(engine.cache.counts), engine.mesh, engine.version
-    version = refine(engine, lam=4.0)
+    version = remesh(engine, lam=4.0)
     assert version == last + 1 and figures[-1]["refined"] and figures[-1]["lam"] == 4.0
     assert engine.cache.counts == counts  # nothing was fitted again
     assert len(engine.mesh.faces) > 0 and not np.array_equal(engine.mesh.vertices,
                                                               before.vertices)
     engine.save(tmp_path)
-    path = refine(tmp_path, lam=4.0)
+    path = remesh(tmp_path, lam=4.0)
     assert path.name == "mesh-lam4-depth2.ply"
     again = trimesh.load(path, process=False)
     np.testing.assert_allclose(again.vertices, engine.mesh.vertices, atol=1e-5)
     with pytest.raises(EngineError, match="no saved reconstruction"):
-        refine(tmp_path / "nothing")
+        remesh(tmp_path / "nothing")
 
 
-def test_refine_before_any_mesh_is_an_error():
-    engine = IncrementalEngine(FAST, background=False)
-    with pytest.raises(EngineError, match="nothing to refine"):
-        engine.refine(lam=2.0)
+def test_remesh_before_any_mesh_is_an_error(fast_params):
+    engine = IncrementalEngine(fast_params, background=False)
+    with pytest.raises(EngineError, match="nothing to re-mesh"):
+        engine.remesh(lam=2.0)
 
 
 def test_alignment_recovers_a_rotation_with_reflection():
@@ -146,13 +140,13 @@ def test_alignment_recovers_a_rotation_with_reflection():
     np.testing.assert_allclose(apply(uv @ turn + [3.0, -2.0]), uv, atol=1e-9)
 
 
-def test_warm_start_fine_tunes_the_same_network_and_refuses_strangers(stream):
+def test_warm_start_fine_tunes_the_same_network_and_refuses_strangers(stream, fast_params):
     truth, stream_views = stream
     patch = np.concatenate(stream_views[:3])
     patch = patch[(patch[:, 1] < -5) & (patch[:, 2] < 95)]
-    first = fit_fresh(patch[: len(patch) // 2], FAST)
-    warm = fit_warm(patch, first, FAST, tolerance=1.0)
+    first = fit_fresh(patch[: len(patch) // 2], fast_params)
+    warm = fit_warm(patch, first, fast_params, tolerance=1.0)
     assert warm is not None and warm.hidden_layers_ == first.hidden_layers_
     assert warm.mlp_.history_[-1].get("fine_tune")
     far = patch + [0.0, 0.0, 500.0]  # no point in common with the first fit
-    assert fit_warm(far, first, FAST, tolerance=1.0) is None
+    assert fit_warm(far, first, fast_params, tolerance=1.0) is None

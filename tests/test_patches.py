@@ -5,9 +5,11 @@ import pytest
 import trimesh
 from scipy.spatial import Delaunay, cKDTree
 from sklearn.base import BaseEstimator
+from surface_checks import hits_per_ray, side_rays
 
-from capture.patches import PatchReconstructor, zip_seam
 from reconstruct.errors import InvalidInputError
+from reconstruct.patches import PatchReconstructor, zip_seam
+from reconstruct.pipeline import SurfaceReconstructor
 
 
 def vase(top: bool = True) -> trimesh.Trimesh:
@@ -49,36 +51,6 @@ class DirectionDelaunay(BaseEstimator):
         edges = np.linalg.norm(points[faces] - points[faces][:, [1, 2, 0]], axis=2)
         self.mesh_ = trimesh.Trimesh(points, faces[edges.max(axis=1) < 5 * spacing], process=False)
         return self
-
-
-def hits_per_ray(mesh, origins, directions) -> np.ndarray:
-    """(r,) how many faces each ray crosses, counted exactly (Möller–Trumbore, every face; a ray
-    tracer's "multiple hits" skips a second layer closer than its step)."""
-    tri = mesh.triangles
-    zlo, zhi = tri[:, :, 2].min(axis=1), tri[:, :, 2].max(axis=1)
-    counts = np.zeros(len(origins), dtype=int)
-    for start in range(0, len(origins), 64):
-        o, d = origins[start : start + 64], directions[start : start + 64]
-        top = np.inf if np.any(d[:, 2] > 0) else o[:, 2].max()
-        t = tri[(zhi >= o[:, 2].min()) & (zlo <= top)]
-        e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
-        p = np.cross(d[:, None], e2[None])
-        det = np.einsum("rfi,fi->rf", p, e1)
-        s = o[:, None] - t[None, :, 0]
-        u = np.einsum("rfi,rfi->rf", s, p) / det
-        q = np.cross(s, e1[None])
-        v = np.einsum("ri,rfi->rf", d, q) / det
-        dist = np.einsum("rfi,fi->rf", q, e2) / det
-        hit = (u >= 0) & (v >= 0) & (u + v <= 1) & (dist > 0) & (np.abs(det) > 1e-12)
-        counts[start : start + 64] = hit.sum(axis=1)
-    return counts
-
-
-def side_rays(heights, angles_deg):
-    """Horizontal rays from the axis outwards at every (height, angle)."""
-    zz, aa = np.meshgrid(heights, np.radians(angles_deg), indexing="ij")
-    origins = np.c_[np.zeros(zz.size), np.zeros(zz.size), zz.ravel()]
-    return origins, np.c_[np.cos(aa.ravel()), np.sin(aa.ravel()), np.zeros(zz.size)]
 
 
 def capped_cylinder() -> trimesh.Trimesh:
@@ -219,9 +191,8 @@ def test_zip_seam_joins_two_polylines_into_a_strip():
 
 @pytest.mark.slow
 def test_paper_reconstructor_patches_merge_into_one_layer():
-    pipeline = pytest.importorskip("reconstruct.pipeline")
     truth = vase()
-    model = PatchReconstructor(reconstructor=pipeline.SurfaceReconstructor(random_state=0))
+    model = PatchReconstructor(reconstructor=SurfaceReconstructor(random_state=0))
     model.fit(sample(truth, 7000, noise=0.3))
     angles = np.r_[np.arange(0.1, 360, 1.0), np.arange(0, 360, 60) - 0.1]
     hits = hits_per_ray(model.mesh_, *side_rays(np.linspace(8, model.cap_height_ - 5, 6), angles))

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from reconstruct.boundary import MultiDepthBoundary
 from reconstruct.errors import DegenerateCloudError, InvalidInputError, NotFittedError
 from reconstruct.pipeline import SurfaceReconstructor
 
@@ -79,12 +80,28 @@ def test_larger_lambda_gives_a_smoother_boundary(plane_model):
     assert smooth >= 2 * np.pi - 1e-6  # a closed simple loop turns at least once
 
 
-def test_remesh_is_consistent_and_cached(plane_model):
+def test_remesh_is_consistent_and_cached(plane_model, monkeypatch):
+    """The boundary paths of a (boundary, depth, corners) are sampled once: a new λ re-fits the
+    spline only, a new depth samples its paths once."""
     first = plane_model.remesh(lam=2, depth=3)
+    sampled = []
+    fit = MultiDepthBoundary.fit
+
+    def counted(self, uv):
+        sampled.append(self.depth)
+        return fit(self, uv)
+
+    monkeypatch.setattr(MultiDepthBoundary, "fit", counted)
     again = plane_model.remesh(lam=2, depth=3)
+    np.testing.assert_array_equal(first.vertices, again.vertices)
     np.testing.assert_array_equal(first.faces, again.faces)
+    smoother = plane_model.remesh(lam=8)
+    assert sampled == [] and not np.array_equal(smoother.vertices, first.vertices)
     deeper = plane_model.remesh(depth=1)
-    assert len(deeper.faces) > 0
+    assert sampled == [1] and len(deeper.faces) > 0
+    plane_model.remesh(depth=1, lam=2)
+    plane_model.remesh(depth=3)
+    assert sampled == [1]
 
 
 def test_save_load_remesh_round_trip(plane_model, tmp_path):

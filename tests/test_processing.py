@@ -3,14 +3,10 @@
 import numpy as np
 import pytest
 
-from capture.calibration import Calibration, fit_sphere_centre
-from capture.processing import (
-    Cylinder,
-    ViewProcessor,
-    depth_to_points,
-    project_points,
-    voxel_downsample,
-)
+from capture.axis_calibration import fit_sphere_centre
+from capture.calibration import Calibration
+from capture.processing import ViewProcessor, depth_to_points, project_points, voxel_downsample
+from capture.volume import Cylinder
 from reconstruct.errors import InvalidInputError
 
 K = np.array([[440.0, 0.0, 320.0], [0.0, 440.0, 200.0], [0.0, 0.0, 1.0]])

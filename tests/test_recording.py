@@ -11,6 +11,7 @@ import uuid
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from scan_helpers import CAMERA, plan
 
 from capture.recording import (
     DEPTH_TOPIC,
@@ -20,7 +21,6 @@ from capture.recording import (
     read_recording,
 )
 from capture.runner import ScanRunner
-from tests.test_runner import CAMERA, plan
 
 
 def record(tmp_path, n_views=5, name="scan"):

@@ -1,5 +1,5 @@
-"""Replay: a recording acts as the station; the same seed gives the same mesh as the live scan,
-and an interrupted scan resumes from its recording into a new segment."""
+"""Replay: the runner re-runs a recording with no device; the same seed gives the same mesh as
+the live scan, and an interrupted scan resumes from its recording into a new segment."""
 
 import dataclasses
 import uuid
@@ -10,16 +10,18 @@ import trimesh
 
 from capture.plan import ScanPlan
 from capture.recording import read_recording, segment_paths
-from capture.replay import ReplayCamera, replay_plan, replay_runner, replay_station
+from capture.replay import replay_plan, replay_runner
 from capture.runner import ScanRunner
-from drivers.errors import DeviceError
-from tests.test_engine import FAST
 
 CAMERA = "sim://camera?width=320&height=200&object=vase"
-PLAN = ScanPlan.turn(8, frames_per_view=2, settle_s=0.0, reconstruction=FAST)
 
 
-def live_scan(out_dir, scan_plan=PLAN, **kwargs):
+@pytest.fixture(scope="module")
+def plan(fast_params):
+    return ScanPlan.turn(8, frames_per_view=2, settle_s=0.0, reconstruction=fast_params)
+
+
+def live_scan(out_dir, scan_plan, **kwargs):
     station = f"replay-{uuid.uuid4().hex[:8]}"
     runner = ScanRunner(scan_plan, camera_url=f"{CAMERA}&station={station}",
                         turntable_url=f"sim://turntable?instant=1&station={station}",
@@ -28,9 +30,9 @@ def live_scan(out_dir, scan_plan=PLAN, **kwargs):
 
 
 @pytest.fixture(scope="module")
-def live(tmp_path_factory):
+def live(tmp_path_factory, plan):
     out = tmp_path_factory.mktemp("live")
-    runner = live_scan(out)
+    runner = live_scan(out, plan)
     assert runner.start().wait(timeout=300) == "done", runner.reason
     return runner
 
@@ -56,25 +58,29 @@ def test_replay_with_another_lambda_changes_only_the_meshing(live, tmp_path):
     assert figures["faces"] != live_figures["faces"]
 
 
-def test_replay_devices_follow_the_recording_and_refuse_other_angles(live):
+def test_replay_announces_the_recorded_views_without_devices(live, tmp_path):
     recording = read_recording(live.out_dir)
-    station = replay_station(recording)
-    with pytest.raises(DeviceError, match="grab before the first move"):
-        station.camera.grab()
-    with pytest.raises(DeviceError, match="next view is at 0°, not 45°"):
-        station.turntable.move_to(45.0)
-    station.turntable.move_to(0.0)
-    assert station.turntable.angle == recording.views[0].measured_angle_deg
-    np.testing.assert_array_equal(station.camera.grab().depth, recording.views[0].frames[0])
-    assert isinstance(station.camera, ReplayCamera)
+    replay = replay_runner(recording, tmp_path / "views", schedule=[])
+    assert replay.start().wait(timeout=300) == "done", replay.reason
+    assert replay.station.camera is None and replay.station.turntable is None
+    assert replay.station.describe() == {**live.station.describe(),
+                                         "turntable": "replay://turntable"}
+    views = [d for d in replay.documents if d.kind == "view"]
+    live_views = [d for d in live.documents if d.kind == "view"]
+    assert [v.to_dict() | {"seq": 0, "time": 0} for v in views] == [
+        v.to_dict() | {"seq": 0, "time": 0} for v in live_views]
+    for view, recorded in zip(views, recording.views, strict=True):
+        np.testing.assert_array_equal(np.stack(view.frames), np.stack(recorded.frames))
+    assert replay.documents[0].resumed_views == 0
+    assert [d.views_done for d in replay.documents if d.kind == "progress"] == list(range(1, 9))
     empty = dataclasses.replace(recording, views=[])
     with pytest.raises(ValueError, match="holds no complete view"):
         replay_plan(empty)
 
 
-def test_an_interrupted_scan_resumes_into_a_new_segment(tmp_path):
+def test_an_interrupted_scan_resumes_into_a_new_segment(tmp_path, plan):
     out = tmp_path / "scan"
-    first = live_scan(out, dataclasses.replace(PLAN, reconstruction=None))
+    first = live_scan(out, dataclasses.replace(plan, reconstruction=None))
 
     def stop_after_three(document):
         if document.kind == "progress" and document.views_done == 3:
@@ -93,9 +99,9 @@ def test_an_interrupted_scan_resumes_into_a_new_segment(tmp_path):
     assert recording.complete
 
 
-def test_replay_of_a_resumed_scan_gives_its_final_mesh(tmp_path):
+def test_replay_of_a_resumed_scan_gives_its_final_mesh(tmp_path, plan):
     out = tmp_path / "scan"
-    first = live_scan(out)
+    first = live_scan(out, plan)
     first.subscribe(lambda d: d.kind == "progress" and d.views_done == 4 and first.cancel())
     assert first.start().wait(timeout=300) == "interrupted"
     resumed = ScanRunner.resume_recording(out)

@@ -6,21 +6,13 @@ import uuid
 
 import numpy as np
 import pytest
+from scan_helpers import CAMERA, plan
 
 from capture.combine import combine_depths
 from capture.plan import PlanError, ScanPlan
 from capture.recording import read_recording
 from capture.runner import TRANSITIONS, CaptureError, InvalidTransition, ScanRunner
 from sim.station import get_station
-
-CAMERA = "sim://camera?width=160&height=100&object=box"
-
-
-def plan(n_views=4, **fields):
-    """A quick plan: no reconstruction, no settling, 2 frames per view."""
-    fields = {"frames_per_view": 2, "settle_s": 0.0, "reconstruction": None,
-              "reconnect_timeout_s": 5.0, **fields}
-    return ScanPlan.turn(n_views, **fields)
 
 
 def station_name():

@@ -12,7 +12,6 @@ import trimesh
 
 from capture.cli import main
 from capture.plan import ScanPlan
-from tests.test_engine import FAST
 
 SMALL_CAMERA = "sim://camera?width=320&height=200"
 
@@ -24,12 +23,12 @@ def sim_urls():
 
 
 @pytest.fixture(scope="module")
-def scanned(tmp_path_factory):
+def scanned(tmp_path_factory, fast_params):
     """A 6-view simulated scan through the CLI (a plan file keeps the networks tiny)."""
     tmp = tmp_path_factory.mktemp("cli")
     plan = tmp / "plan.json"
     plan.write_text(ScanPlan.turn(6, frames_per_view=2, settle_s=0.0,
-                                  reconstruction=FAST).to_json())
+                                  reconstruction=fast_params).to_json())
     out = tmp / "scan"
     code = main(["scan", *sim_urls(), "--plan", str(plan), "-o", str(out), "--workers", "1"])
     return code, out
@@ -115,6 +114,6 @@ def test_entry_point_runs_as_a_program():
         assert option in result.stdout
 
 
-def test_plan_file_round_trip(tmp_path):
-    plan = dataclasses.replace(ScanPlan.turn(4), reconstruction=FAST)
+def test_plan_file_round_trip(tmp_path, fast_params):
+    plan = dataclasses.replace(ScanPlan.turn(4), reconstruction=fast_params)
     assert ScanPlan.from_json(plan.to_json()) == plan

@@ -298,7 +298,8 @@ def test_bad_urls_give_one_line_errors(query, message):
 
 def test_calibration_finds_the_reversed_sense_of_rotation(tmp_path):
     """With rotation_sign=-1 the views turn clockwise, and calibration must see that."""
-    from capture.calibration import Calibration, DumbbellTarget, calibrate
+    from capture.axis_calibration import DumbbellTarget, calibrate
+    from capture.calibration import Calibration
 
     target = DumbbellTarget()
     target.mesh().export(tmp_path / "dumbbell.stl")

@@ -26,7 +26,8 @@ def run(args) -> int:
 
     import numpy as np
 
-    from capture.calibration import Calibration, DumbbellTarget, calibrate
+    from capture.axis_calibration import DumbbellTarget, calibrate
+    from capture.calibration import Calibration
     from capture.station import follow_turntable, is_simulated, station_urls
     from drivers.registry import open_camera, open_turntable
 

@@ -168,9 +168,9 @@ def _api_router() -> APIRouter:
         return _public(jobs, jobs.reprocess(scan_id))
 
     @api.post("/scans/{scan_id}/refine", tags=["scans"])
-    def refine_scan(scan_id: ScanId, body: RefineRequest, jobs: Jobs) -> dict:
+    def remesh_scan(scan_id: ScanId, body: RefineRequest, jobs: Jobs) -> dict:
         """A new mesh version with a new λ / boundary depth, through ONNX (no retraining)."""
-        return _public(jobs, jobs.refine(scan_id, body.lam, body.depth), files=True)
+        return _public(jobs, jobs.remesh(scan_id, body.lam, body.depth), files=True)
 
     @api.get("/scans/{scan_id}/mesh", tags=["downloads"])
     def get_mesh(scan_id: ScanId, jobs: Jobs, format: MeshFormat = "ply") -> Response:

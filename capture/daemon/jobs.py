@@ -219,7 +219,7 @@ class ScanJobs:
             self.refiner.forget(scan_id)
         shutil.rmtree(folder, ignore_errors=True)
 
-    def refine(self, scan_id: str, lam: float | None, depth: int | None) -> ScanRecord:
+    def remesh(self, scan_id: str, lam: float | None, depth: int | None) -> ScanRecord:
         """A new mesh version from the saved reconstruction with new λ / depth (no training)."""
         with self._lock:  # no reprocess, resume or delete may start while it refines
             record = self.get(scan_id)
@@ -230,7 +230,7 @@ class ScanJobs:
             current = record.mesh_params  # a value not given stays as the current mesh has it
             lam = current.get("lam") if lam is None else lam
             depth = current.get("depth") if depth is None else depth
-            result = self.refiner.refine(scan_id, self.scan_dir(record), lam, depth)
+            result = self.refiner.remesh(scan_id, self.scan_dir(record), lam, depth)
             with self._lock:
                 version = self.get(scan_id).mesh_version + 1
                 params = {"lam": result.lam, "depth": result.depth, "file": result.file}

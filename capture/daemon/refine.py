@@ -1,9 +1,9 @@
 """Re-meshing a finished scan with a new λ / boundary depth, through ONNX, with no training.
 
-`capture.engine` saves the reconstruction (every patch's network and boundary state) in the
+`capture.live.engine` saves the reconstruction (every patch's network and boundary state) in the
 scan folder; loading it costs more than a re-mesh, so the last few loaded engines are kept, and
 a λ slider moved by an operator re-meshes in milliseconds. Each refine writes
-``mesh-lam{λ}-depth{d}.ply`` in the scan folder (as `capture.engine.refine` does).
+``mesh-lam{λ}-depth{d}.ply`` in the scan folder (as `capture.live.engine.remesh` does).
 """
 
 from __future__ import annotations
@@ -34,10 +34,10 @@ class MeshRefiner:
         self._locks: dict[str, threading.Lock] = {}
         self._lock = threading.Lock()
 
-    def refine(self, scan_id: str, folder: Path, lam: float | None,
+    def remesh(self, scan_id: str, folder: Path, lam: float | None,
                depth: int | None) -> RefineResult:
         """Re-mesh and write the mesh; `Conflict` when the scan has no saved reconstruction."""
-        from capture.engine import EngineError, IncrementalEngine
+        from capture.live.engine import EngineError, IncrementalEngine
 
         with self._lock:
             scan_lock = self._locks.setdefault(scan_id, threading.Lock())
@@ -56,7 +56,7 @@ class MeshRefiner:
                     self._engines[scan_id] = engine
                     while len(self._engines) > self.cache_size:
                         self._engines.popitem(last=False)
-            engine.refine(lam, depth)
+            engine.remesh(lam, depth)
             figures = dict(engine.figures)
             name = f"mesh-lam{figures['lam']:g}-depth{figures['depth']}.ply"
             partial = folder / f".{name}.part"

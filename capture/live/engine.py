@@ -2,17 +2,18 @@
 
 Views (object-frame points) merge into a `VoxelCloud`. After every ``update_every`` views, and
 after the last view (`finish`), the engine reconstructs the closed object as patches
-(`CachedPatches`): a patch is first fitted once its coverage stops growing, then it keeps its
-fit until it grows by ``min_growth`` (and is fine-tuned from its own network: a warm start); the
-last update polishes every patch on the final points. Updates run in order on one worker thread,
-so the meshes depend only on the views (a replay gives the same mesh), never on timing. Each new
-mesh goes to ``on_mesh``. `refine` re-meshes every patch through its ONNX map with a new λ /
-depth: no training.
+(`LivePatches`, fits kept in a `PatchCache`): a patch is first fitted once its coverage stops
+growing, then it keeps its fit until it grows by ``min_growth`` (and is fine-tuned from its own
+network: a warm start); the last update polishes every patch on the final points. Updates run in
+order on one worker thread, so the meshes depend only on the views (a replay gives the same
+mesh), never on timing. Each new mesh goes to ``on_mesh``. `remesh` re-meshes every patch
+through its ONNX map with a new λ / depth: no training.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 import json
 import logging
 import multiprocessing
@@ -26,9 +27,10 @@ import trimesh
 
 from reconstruct.pipeline import SurfaceReconstructor
 
+from ..plan import ReconstructionParams
 from .cloud import VoxelCloud
-from .patch_cache import CachedPatches, PatchCache, PatchFit
-from .plan import ReconstructionParams
+from .patch_cache import PatchCache, PatchFit
+from .patches import LivePatches
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +40,15 @@ _STOP = object()
 
 class EngineError(RuntimeError):
     """The engine failed or was used out of order (the message names the cause)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Update:
+    """A scheduled reconstruction: the merged (m, 3) points after ``views`` views."""
+
+    points: np.ndarray
+    views: int
+    final: bool
 
 
 class IncrementalEngine:
@@ -54,6 +65,7 @@ class IncrementalEngine:
         more than one update behind the turntable.
     Attributes: ``mesh`` (trimesh.Trimesh or None), ``version`` (0 until the first mesh),
     ``figures`` (dict of the last update), ``cloud`` (`VoxelCloud`), ``views`` (count),
+    ``view_points`` (each view's (n, 3) points as added, for the quality report),
     ``schedule_run`` (view counts of the updates run so far, the final one excluded).
     """
 
@@ -68,11 +80,12 @@ class IncrementalEngine:
         self.on_mesh = on_mesh
         self.cloud = VoxelCloud(params.voxel_mm)
         self.cache = PatchCache(params)
-        self.patches = CachedPatches.for_params(self.cache)
+        self.patches = LivePatches(self.cache)
         self.mesh: trimesh.Trimesh | None = None
         self.version = 0
         self.figures: dict = {}
         self.views = 0
+        self.view_points: list[np.ndarray] = []
         self.error: BaseException | None = None
         self._last_update = 0  # views at the last scheduled update
         self._fitted_points: np.ndarray | None = None
@@ -97,6 +110,7 @@ class IncrementalEngine:
     def add_view(self, points) -> bool:
         """Merge one view's (n, 3) object-frame points, mm; True when it scheduled an update."""
         self.cloud.add(points)
+        self.view_points.append(points)
         self.views += 1
         p = self.params
         if self.schedule is not None:
@@ -116,11 +130,11 @@ class IncrementalEngine:
 
     def _schedule(self, final: bool) -> None:
         self._last_update = self.views
-        task = ("update", self.cloud.points(self.params.min_views), self.views, final)
+        update = Update(self.cloud.points(self.params.min_views), self.views, final)
         if self._thread is None:
-            self._run(task)
+            self._run(update)
         else:
-            self._queue.put(task)
+            self._queue.put(update)
 
     def wait(self, timeout: float | None = None) -> None:
         """Block until every scheduled update ran; re-raise the engine's failure if any."""
@@ -158,37 +172,37 @@ class IncrementalEngine:
     # -- work ----------------------------------------------------------------------------------
     def _work(self) -> None:
         while True:
-            task = self._queue.get()
+            update = self._queue.get()
             try:
-                if task is _STOP:
+                if update is _STOP:
                     return
-                stale = self.schedule is None and not task[3] and not self._queue.empty()
+                stale = self.schedule is None and not update.final and not self._queue.empty()
                 if self.error is None and not stale:  # (a newer update is waiting: skip)
-                    self._run(task)
+                    self._run(update)
             except Exception as exc:  # kept and re-raised by wait(): the scan decides
                 log.error("reconstruction failed: %s", exc)
                 self.error = exc
             finally:
                 self._queue.task_done()
 
-    def _run(self, task) -> None:
-        _, points, views, final = task
+    def _run(self, update: Update) -> None:
+        points, views, final = update.points, update.views, update.final
         started = time.perf_counter()
         if not final:
             self.schedule_run.append(views)
         before = dict(self.cache.counts)
-        patches = self.patches.fit_cloud(points, final=final, executor=self._executor)
-        if len(patches.mesh_.faces) == 0:
+        patches = self.patches.update(points, final=final, executor=self._executor)
+        if len(patches.mesh.faces) == 0:
             log.info("update after %d views: no patch is ready yet", views)
             return
         counts = {k: v - before[k] for k, v in self.cache.counts.items()}
-        self._publish(patches.mesh_, points, {
+        self._publish(patches.mesh, points, {
             "views": views,
             "final": final,
             "points": len(points),
             "seconds": time.perf_counter() - started,
-            "patches": len(patches.patch_names_) - len(patches.waiting_),
-            "patches_waiting": len(patches.waiting_),
+            "patches": len(patches.names) - len(patches.waiting),
+            "patches_waiting": len(patches.waiting),
             **{f"patches_{k}": v for k, v in counts.items()},
             "schedule": list(self.schedule_run),
         })
@@ -205,17 +219,17 @@ class IncrementalEngine:
         if self.on_mesh is not None:
             self.on_mesh(self, dict(self.figures))
 
-    # -- refine and persistence -----------------------------------------------------------------
-    def refine(self, lam: float | None = None, depth: int | None = None) -> int:
+    # -- remesh and persistence -----------------------------------------------------------------
+    def remesh(self, lam: float | None = None, depth: int | None = None) -> int:
         """Re-mesh every patch with a new λ and/or depth (ONNX, no training); new version."""
         self.wait()
         if self._fitted_points is None:
-            raise EngineError("nothing to refine: no mesh yet")
+            raise EngineError("nothing to re-mesh: no mesh yet")
         lam = self.params.lam if lam is None else float(lam)
         depth = self.params.depth if depth is None else int(depth)
         started = time.perf_counter()
-        patches = self.patches.remesh_cloud(self._fitted_points, lam, depth)
-        self._publish(patches.mesh_, self._fitted_points, {
+        patches = self.patches.remesh(self._fitted_points, lam, depth)
+        self._publish(patches.mesh, self._fitted_points, {
             "views": self.figures.get("views", self.views), "final": True, "lam": lam,
             "depth": depth, "points": len(self._fitted_points), "refined": True,
             "seconds": time.perf_counter() - started,
@@ -239,7 +253,7 @@ class IncrementalEngine:
 
     @classmethod
     def load(cls, directory) -> IncrementalEngine:
-        """An engine that can `refine` the reconstruction saved in ``directory``/engine."""
+        """An engine that can `remesh` the reconstruction saved in ``directory``/engine."""
         source = Path(directory) / STATE_DIR
         try:
             meta = json.loads((source / "engine.json").read_text())
@@ -263,13 +277,13 @@ def _warm_up() -> None:
     reconstruct.networks.load_torch()
 
 
-def refine(source, lam: float | None = None, depth: int | None = None):
+def remesh(source, lam: float | None = None, depth: int | None = None):
     """Re-mesh without retraining. ``source``: an `IncrementalEngine` (returns the new mesh
     version) or a scan directory (writes and returns ``mesh-lam{λ}-depth{d}.ply`` beside it)."""
     if isinstance(source, IncrementalEngine):
-        return source.refine(lam, depth)
+        return source.remesh(lam, depth)
     engine = IncrementalEngine.load(source)
-    engine.refine(lam, depth)
+    engine.remesh(lam, depth)
     f = engine.figures
     path = Path(source) / f"mesh-lam{f['lam']:g}-depth{f['depth']}.ply"
     engine.mesh.export(path)

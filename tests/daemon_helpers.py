@@ -1,4 +1,4 @@
-"""Shared helpers of the daemon tests (imported by the test_daemon_* modules; no tests here).
+"""Shared helpers of the daemon tests (a helper module for the test_daemon_* modules; no tests).
 
 Scans run on the real runner and simulated station: a small camera image and an instant
 turntable make a capture-only scan take a fraction of a second; ``settle_s`` slows a scan down

@@ -69,13 +69,14 @@ class ScanRunner(RunLifecycle):
     calibration : a `Calibration` or calibration file (default: the simulator's truth, or the
         resumed recording's).  seed : simulated camera noise seed.
     workers : processes for the engine's patch fits (the mesh does not depend on it).
+    executor : where the fits run instead (`capture.executors`; the caller shuts it down).
     schedule : the engine's update schedule (`IncrementalEngine`; replays pass the live one).
     """
 
     def __init__(self, plan: ScanPlan | None = None, camera_url=None, turntable_url=None,
                  object=None, out_dir="scan", resume_from=None, *, station: Station | None = None,
                  calibration=None, record: bool = True, seed: int = 0, workers: int = 1,
-                 schedule=None):
+                 schedule=None, executor=None):
         self.out_dir = Path(resume_from if resume_from is not None and out_dir == "scan"
                             else out_dir)
         self.resume_from = None if resume_from is None else Path(resume_from)
@@ -84,6 +85,7 @@ class ScanRunner(RunLifecycle):
         self.station = station
         self.record = record
         self.workers = workers
+        self.executor = executor
         self.schedule = schedule
         self.scan_id = uuid.uuid4().hex
         super().__init__()
@@ -158,7 +160,7 @@ class ScanRunner(RunLifecycle):
         if self.plan.reconstruction is not None:
             self.engine = IncrementalEngine(self.plan.reconstruction, on_mesh=self._on_mesh,
                                             workers=self.workers, total_views=self.plan.n_views,
-                                            schedule=self.schedule)
+                                            schedule=self.schedule, executor=self.executor)
         if self.record:
             self.segment, path = next_segment(self.out_dir)
             self._recorder = RecordingWriter(

@@ -3,35 +3,19 @@ processes started here): the meshes are the live scans' bit for bit, a corrupt r
 alone with its cause, a second run skips everything, a worker killed mid-run changes nothing, and
 an unreachable scheduler is a one-line error."""
 
-import dataclasses
 import os
 import signal
 import threading
 import time
-import uuid
 
 import pytest
 
 from capture.cli import main
-from capture.plan import ScanPlan
-from capture.runner import ScanRunner
-from tests.test_engine import FAST
+from tests.test_reprocess import record
 
 distributed = pytest.importorskip("distributed")
 
-#: Tiny scans (6 views of 160×100 px, one frame each, only the final update): seconds each.
-PLAN = ScanPlan.turn(6, frames_per_view=1, settle_s=0.0,
-                     reconstruction=dataclasses.replace(FAST, update_every=0))
 OBJECTS = {"box": ("box", 0), "bust": ("bust", 0), "box-noisier": ("box", 1)}
-
-
-def record(out_dir, obj: str, seed: int = 0) -> None:
-    station = f"cluster-{uuid.uuid4().hex[:8]}"
-    runner = ScanRunner(PLAN, camera_url=f"sim://camera?width=160&height=100&object={obj}"
-                        f"&station={station}",
-                        turntable_url=f"sim://turntable?instant=1&station={station}",
-                        out_dir=out_dir, seed=seed)
-    assert runner.start().wait(timeout=300) == "done", runner.reason
 
 
 @pytest.fixture(scope="module")
@@ -90,10 +74,11 @@ def test_a_second_run_skips_everything_up_to_date(recordings, first_run, capsys)
     table = capsys.readouterr().out
     assert "3 recordings" in table and "0 ok, 3 skipped, 0 failed" in table
     assert before == {name: (out / name / "mesh.ply").stat().st_mtime_ns for name in OBJECTS}
-    # another λ is another result: nothing is skipped then
-    assert main(["reprocess", str(recordings / "scans"), "-o", str(out), "--lam", "3",
+    # another λ is another result: not skipped
+    assert main(["reprocess", str(recordings / "scans" / "bust"), "-o", str(out), "--lam", "3",
                  *cluster]) == 0
-    assert "3 ok, 0 skipped" in capsys.readouterr().out
+    assert "1 ok, 0 skipped" in capsys.readouterr().out
+    assert _mesh_bytes(out / "bust") != _mesh_bytes(recordings / "scans" / "bust")
 
 
 def test_replay_with_cluster_fits_on_the_workers_and_gives_the_live_mesh(
@@ -125,17 +110,18 @@ def test_a_worker_killed_mid_run_is_retried_and_the_meshes_are_identical(
                     killed.append(pid)
             time.sleep(0.05)
 
+    names = ["box", "bust"]
     killer = threading.Thread(target=kill_a_busy_worker)
     killer.start()
     try:
         outcomes = Reprocessor(tmp_path, executor=executor).run(
-            find_recordings([recordings / "scans"]))
+            find_recordings([recordings / "scans" / name for name in names]))
     finally:
         killer.join()
         executor.shutdown()
     assert killed, "no worker was killed: the test did not test anything"
-    assert [o.status for o in outcomes] == ["ok"] * 3, [o.cause for o in outcomes]
-    for name in OBJECTS:
+    assert [o.status for o in outcomes] == ["ok"] * 2, [o.cause for o in outcomes]
+    for name in names:
         assert _mesh_bytes(tmp_path / name) == _mesh_bytes(recordings / "scans" / name)
     client_after = distributed.Client(cluster.scheduler_address, set_as_default=False)
     try:

@@ -144,3 +144,28 @@ def test_an_unreachable_scheduler_is_a_one_line_error(recordings, tmp_path, caps
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert "cannot resolve no-such-host.invalid" in err
     assert not list(tmp_path.iterdir())  # nothing written
+
+
+def test_daemon_scans_fit_on_the_cluster_given_to_serve(recordings, cluster, tmp_path):
+    import shutil
+
+    from capture.daemon.isolation import RunSpec, build_runner
+    from capture.executors import ClusterExecutor
+
+    scan = shutil.copytree(recordings / "scans" / "box", tmp_path / "box")
+    (scan / "mesh.ply").unlink()
+    runner = build_runner(RunSpec(None, scan, replay=True, cluster=cluster.scheduler_address))
+    assert isinstance(runner.executor, ClusterExecutor)
+    try:
+        assert runner.start().wait(timeout=300) == "done", runner.reason
+    finally:
+        runner.executor.shutdown()
+    assert _mesh_bytes(scan) == _mesh_bytes(recordings / "scans" / "box")
+
+
+def test_serve_with_an_unreachable_cluster_stops_with_one_line(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("capture.executors.CONNECT_TIMEOUT_S", 1.0)
+    assert main(["serve", "--state-dir", str(tmp_path), "--port", "0", "--cluster",
+                 "tcp://127.0.0.1:9"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("scanstation: error: Dask scheduler tcp://127.0.0.1:9 unreachable")

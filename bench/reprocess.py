@@ -72,8 +72,19 @@ def reprocess(recordings, executor, label: str, reference=None) -> dict:
     if reference is not None:
         assert meshes == reference, f"{label}: meshes differ from the first run"
     task_s = statistics.median(o.seconds for o in outcomes)
+    cpu = [o.figures["cpu_seconds"] for o in outcomes]
     return {"label": label, "wall": wall, "per_min": 60 * len(outcomes) / wall,
-            "task_median": task_s, "load": f"{before} -> {load()}", "meshes": meshes}
+            "task_median": task_s, "cpu": cpu, "load": f"{before} -> {load()}",
+            "meshes": meshes}
+
+
+def makespan(costs, workers: int) -> float:
+    """Longest-first greedy schedule of ``costs`` on ``workers`` idle cores (the run's length
+    with the machine to itself)."""
+    loads = [0.0] * workers
+    for c in sorted(costs, reverse=True):
+        loads[loads.index(min(loads))] += c
+    return max(loads)
 
 
 def _echo(data):
@@ -137,13 +148,19 @@ def main() -> None:
     finally:
         executor.shutdown()
 
-    print(f"\n{'run':<20} {'wall_s':>7} {'rec/min':>8} {'task_med_s':>10}  load (1/5/15 min)")
+    print(f"\n{'run':<20} {'wall_s':>7} {'rec/min':>8} {'task_med_s':>10} {'cpu_s/rec':>9}"
+          "  load (1/5/15 min)")
     for r in rows:
         print(f"{r['label']:<20} {r['wall']:7.1f} {r['per_min']:8.2f} {r['task_median']:10.1f}"
-              f"  {r['load']}")
+              f" {statistics.median(r['cpu']):9.1f}  {r['load']}")
     ratio = rows[1]["per_min"] / rows[0]["per_min"]
     print(f"\nthroughput, 2 workers / 1 worker: {ratio:.2f}x (target >= 1.8); dask 2 / local 2: "
           f"{rows[1]['per_min'] / rows[2]['per_min']:.2f}x; every mesh identical: yes")
+    # The machine is shared: from the CPU each recording took, what 2 idle cores would give.
+    idle = sum(rows[0]["cpu"]) / makespan(rows[1]["cpu"], 2)
+    print(f"on idle cores (CPU seconds of each task, longest-first on 2 cores): "
+          f"{idle:.2f}x; CPU per recording 2 workers / 1 worker: "
+          f"{sum(rows[1]['cpu']) / sum(rows[0]['cpu']):.2f}")
     print(f"\nper-task overhead, {args.tasks} trivial tasks, 2 workers  (ms)")
     print(f"{'executor':<20} {'payload':>8} {'batch/task':>11} {'round trip':>11}")
     for label, figures in (("dask LocalCluster", dask_overhead),

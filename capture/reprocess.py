@@ -169,10 +169,11 @@ def reprocess_recording(segments: list[tuple[str, bytes]], overrides: dict,
     segments : [(file name, MCAP bytes)] in order.  overrides : e.g. {"lam": 2.0, "seed": 1}.
     source, target : the recording's and the output's paths on the submitting machine (messages
     and scan.json name them instead of the worker's temporary folders).
-    Returns {"files": {relative path: bytes}, "seconds", "figures", "warnings": [one line]},
-    or {"error": one-line cause, "seconds", "warnings"} when the recording cannot be replayed.
+    Returns {"files": {relative path: bytes}, "seconds", "cpu_seconds" (the worker process's,
+    all threads), "figures", "warnings": [one line]}, or {"error": one-line cause, "seconds",
+    "cpu_seconds", "warnings"} when the recording cannot be replayed.
     """
-    started = time.perf_counter()
+    started, cpu = time.perf_counter(), time.process_time()
     with tempfile.TemporaryDirectory(prefix="scanstation-reprocess-") as tmp:
         src, out = Path(tmp) / "in", Path(tmp) / "out"
 
@@ -186,7 +187,8 @@ def reprocess_recording(segments: list[tuple[str, bytes]], overrides: dict,
         except ReprocessError as exc:
             result = {"error": str(exc)}
         notes = [named(n) for n in notes]
-    return {**result, "seconds": time.perf_counter() - started, "warnings": notes}
+    return {**result, "seconds": time.perf_counter() - started, "warnings": notes,
+            "cpu_seconds": time.process_time() - cpu}
 
 
 def _replay(segments, overrides: dict, src: Path, out: Path, named) -> dict:
@@ -384,4 +386,5 @@ class Reprocessor:
         except OSError as exc:
             return Outcome(job, "failed", seconds,
                            f"writing {self.out_dir / job.name}: {exc.strerror or exc}")
-        return Outcome(job, "ok", result["seconds"], figures=result["figures"])
+        return Outcome(job, "ok", result["seconds"],
+                       figures={**result["figures"], "cpu_seconds": result["cpu_seconds"]})

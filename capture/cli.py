@@ -9,8 +9,8 @@ import sys
 import warnings
 
 #: sub-command modules, imported lazily so `scanstation --help` stays fast.
-COMMANDS = ("demo", "scan", "replay", "calibrate", "reconstruct", "remesh", "devices", "serve",
-            "simulate")
+COMMANDS = ("demo", "scan", "replay", "reprocess", "calibrate", "reconstruct", "remesh",
+            "devices", "serve", "simulate")
 EXPECTED_ERRORS: tuple[type[BaseException], ...] = (OSError, ValueError)
 
 

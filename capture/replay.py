@@ -32,11 +32,13 @@ def replay_plan(recording: Recording, **reconstruction) -> ScanPlan:
                                frames_per_view=frames, reconstruction=params).validate()
 
 
-def replay_runner(source, out_dir, workers: int = 1, schedule="recorded", **reconstruction):
+def replay_runner(source, out_dir, workers: int = 1, schedule="recorded", executor=None,
+                  **reconstruction):
     """A `ScanRunner` (not started) re-running the recording at ``source`` (a file or a scan
     folder) into ``out_dir``, without recording again; ``reconstruction`` overrides parameters
-    (e.g. ``lam=2.0``); ``workers`` as in `ScanRunner`; ``schedule``: the engine's updates,
-    "recorded" (the live scan's: same mesh), or a list of view counts ([] : only the final)."""
+    (e.g. ``lam=2.0``); ``workers``, ``executor`` as in `ScanRunner`; ``schedule``: the
+    engine's updates, "recorded" (the live scan's: same mesh), or a list of view counts ([] :
+    only the final)."""
     from .runner import ScanRunner
 
     recording = source if isinstance(source, Recording) else read_recording(source)
@@ -45,6 +47,7 @@ def replay_runner(source, out_dir, workers: int = 1, schedule="recorded", **reco
                     recording.segments[-1], len(recording.views))
     plan = replay_plan(recording, **reconstruction)
     return ScanRunner(plan, out_dir=out_dir, replay=recording, record=False, workers=workers,
+                      executor=executor,
                       schedule=recorded_schedule(recording) if schedule == "recorded" else schedule)
 
 

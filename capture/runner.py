@@ -77,13 +77,14 @@ class ScanRunner(RunLifecycle):
     calibration : a `Calibration` or calibration file (default: the simulator's truth, or the
         resumed recording's).  seed : simulated camera noise seed.
     workers : processes for the engine's patch fits (the mesh does not depend on it).
+    executor : where the fits run instead (`capture.executors`; the caller shuts it down).
     schedule : the engine's update schedule (`IncrementalEngine`; replays pass the live one).
     """
 
     def __init__(self, plan: ScanPlan | None = None, camera_url=None, turntable_url=None,
                  object=None, out_dir="scan", resume_from=None, *, station: Station | None = None,
                  calibration=None, record: bool = True, seed: int = 0, workers: int = 1,
-                 schedule=None, replay: Recording | None = None):
+                 schedule=None, replay: Recording | None = None, executor=None):
         self.out_dir = Path(resume_from if resume_from is not None and out_dir == "scan"
                             else out_dir)
         self.resume_from = None if resume_from is None else Path(resume_from)
@@ -93,6 +94,7 @@ class ScanRunner(RunLifecycle):
         self.replay = replay
         self.record = record
         self.workers = workers
+        self.executor = executor
         self.schedule = schedule
         self.scan_id = uuid.uuid4().hex
         super().__init__()
@@ -171,7 +173,7 @@ class ScanRunner(RunLifecycle):
         if self.plan.reconstruction is not None:
             self.engine = IncrementalEngine(self.plan.reconstruction, on_mesh=self._on_mesh,
                                             workers=self.workers, total_views=self.plan.n_views,
-                                            schedule=self.schedule)
+                                            schedule=self.schedule, executor=self.executor)
         unannounced = recorded and not self._announce_recorded
         self._writers.append(ScanReport(self.outputs, self.engine, started=self._started,
                                         image_shape=recorded[-1].frames[0].shape

@@ -22,10 +22,15 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     from capture.replay import replay_runner
 
-    from .scan import engine_overrides, finish, progress_printer
+    from .scan import cluster_executor, engine_overrides, finish, progress_printer
 
-    runner = replay_runner(args.recording, args.output, workers=args.workers,
-                           **engine_overrides(args))
-    log.info("replaying %d views from %s", runner.plan.n_views, args.recording)
-    runner.subscribe(progress_printer())
-    return finish(runner.start())
+    executor = cluster_executor(args)
+    try:
+        runner = replay_runner(args.recording, args.output, workers=args.workers,
+                               executor=executor, **engine_overrides(args))
+        log.info("replaying %d views from %s", runner.plan.n_views, args.recording)
+        runner.subscribe(progress_printer())
+        return finish(runner.start())
+    finally:
+        if executor is not None:
+            executor.shutdown(wait=False, cancel_futures=True)

@@ -46,6 +46,23 @@ def add_engine_options(parser) -> None:
     parser.add_argument("--seed", type=int, default=None, help="random seed (same seed, same "
                         "mesh)")
     parser.add_argument("--workers", type=int, default=2, help="processes fitting patches (2)")
+    add_cluster_option(parser)
+
+
+def add_cluster_option(parser) -> None:
+    """``--cluster ADDRESS``: the fits on a Dask cluster (scan, replay, reprocess, serve)."""
+    parser.add_argument("--cluster", metavar="ADDRESS", default=None,
+                        help="run the fits on a Dask cluster, e.g. tcp://server:8786 (needs the "
+                        "'cluster' extra; default: local processes)")
+
+
+def cluster_executor(args):
+    """The Dask executor for ``--cluster`` (None without it: the engine's own processes)."""
+    if not getattr(args, "cluster", None):
+        return None
+    from capture.executors import make_executor
+
+    return make_executor(args.cluster)
 
 
 def engine_overrides(args) -> dict:
@@ -96,12 +113,17 @@ def run(args) -> int:
         plan = dataclasses.replace(plan, reconstruction=dataclasses.replace(
             plan.reconstruction, **engine_overrides(args)))
     out_dir = args.resume or args.output or default_output()
-    runner = ScanRunner(plan, camera_url=args.camera, turntable_url=args.turntable,
-                        object=args.object, out_dir=out_dir,
-                        resume_from=args.resume, calibration=args.calibration,
-                        workers=args.workers)
-    runner.subscribe(progress_printer())
-    return finish(runner.start())
+    executor = cluster_executor(args)
+    try:
+        runner = ScanRunner(plan, camera_url=args.camera, turntable_url=args.turntable,
+                            object=args.object, out_dir=out_dir,
+                            resume_from=args.resume, calibration=args.calibration,
+                            workers=args.workers, executor=executor)
+        runner.subscribe(progress_printer())
+        return finish(runner.start())
+    finally:
+        if executor is not None:
+            executor.shutdown(wait=False, cancel_futures=True)
 
 
 def default_output() -> str:

@@ -29,6 +29,9 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--max-body", type=int, default=1 << 20, metavar="BYTES",
                         help="largest request body accepted (1 MiB)")
     parser.add_argument("--access-log", action="store_true", help="log every request")
+    from .scan import add_cluster_option
+
+    add_cluster_option(parser)  # every scan the daemon runs fits on that one cluster
     parser.set_defaults(run=run)
 
 
@@ -50,8 +53,19 @@ def run(args) -> int:
         print(f"API token (shown once; kept in {state_dir / TOKEN_FILE}): {token}", flush=True)
     log.info("state dir %s; %s", state_dir, "bearer token required" if required
              else "loopback only: no token needed")
+    options = {}
+    if args.cluster:
+        import functools
+
+        from capture.daemon.jobs import default_runner_factory
+        from capture.executors import make_executor
+
+        make_executor(args.cluster, warm_up=False).shutdown()  # unreachable: one-line error now
+        options["runner_factory"] = functools.partial(default_runner_factory,
+                                                      cluster=args.cluster)
+        log.info("scans fit on the Dask cluster %s", args.cluster)
     app = create_app(state_dir, token=token, require_token=required,
-                     max_body_bytes=args.max_body, loopback_hosts_only=not required)
+                     max_body_bytes=args.max_body, loopback_hosts_only=not required, **options)
     level = logging.getLogger("capture").level
     logging.getLogger("uvicorn").setLevel(level)
     logging.getLogger("uvicorn.access").setLevel(level if args.access_log else logging.WARNING)

@@ -53,7 +53,7 @@ def create_app(state_dir: str | Path, *, token: str = "", require_token: bool = 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
         state_dir.mkdir(parents=True, exist_ok=True)
-        if runner_factory is default_runner_factory:
+        if getattr(runner_factory, "func", runner_factory) is default_runner_factory:
             threading.Thread(target=warm_up, name="forkserver-warm-up", daemon=True).start()
         store = JobStore(state_dir / DATABASE)
         app.state.interrupted_at_start = store.recover()

@@ -50,18 +50,26 @@ class RunSpec:
     resume_from: Path | None = None
     replay: bool = False
     log_level: int = logging.WARNING
+    cluster: str | None = None  # Dask scheduler for the fits (`capture.executors`)
 
 
 def build_runner(spec: RunSpec):
-    """The `ScanRunner` for ``spec`` (not started)."""
+    """The `ScanRunner` for ``spec`` (not started); with ``spec.cluster`` its fits go to that
+    Dask cluster (``runner.executor``, shut down by the caller)."""
+    executor = None
+    if spec.cluster:
+        from capture.executors import make_executor
+
+        executor = make_executor(spec.cluster)
     if spec.replay:
         from capture.replay import replay_runner
 
-        return replay_runner(spec.out_dir, spec.out_dir)
+        return replay_runner(spec.out_dir, spec.out_dir, executor=executor)
     from capture.runner import ScanRunner
 
     return ScanRunner(spec.plan, camera_url=spec.camera_url, turntable_url=spec.turntable_url,
-                      object=spec.object, out_dir=spec.out_dir, resume_from=spec.resume_from)
+                      object=spec.object, out_dir=spec.out_dir, resume_from=spec.resume_from,
+                      executor=executor)
 
 
 def _context():
@@ -249,4 +257,6 @@ def _child(documents, commands, spec: RunSpec) -> None:
 
     threading.Thread(target=obey, name="scan-commands", daemon=True).start()
     runner.wait()
+    if runner.executor is not None:
+        runner.executor.shutdown(wait=False, cancel_futures=True)
     send(("end", runner.state, runner.reason))

@@ -38,11 +38,12 @@ SCANS_DIR = "scans"
 
 
 def default_runner_factory(plan, *, camera_url, turntable_url, object, out_dir, resume_from,
-                           replay=False):
+                           replay=False, cluster=None):
     """The real runner, each scan in its own process (`capture.daemon.isolation`). ``replay``:
-    re-run the recording in ``out_dir`` as the station, recording nothing (re-processing)."""
+    re-run the recording in ``out_dir`` as the station, recording nothing (re-processing).
+    ``cluster``: the Dask scheduler every scan's fits go to (`functools.partial` it in)."""
     return ProcessRunner(_spec(plan, camera_url, turntable_url, object, out_dir, resume_from,
-                               replay))
+                               replay, cluster))
 
 
 def in_process_runner_factory(plan, *, camera_url, turntable_url, object, out_dir, resume_from,
@@ -52,10 +53,11 @@ def in_process_runner_factory(plan, *, camera_url, turntable_url, object, out_di
                               replay))
 
 
-def _spec(plan, camera_url, turntable_url, object, out_dir, resume_from, replay) -> RunSpec:
+def _spec(plan, camera_url, turntable_url, object, out_dir, resume_from, replay,
+          cluster=None) -> RunSpec:
     return RunSpec(plan, Path(out_dir), camera_url, turntable_url, object,
                    None if resume_from is None else Path(resume_from), replay,
-                   logging.getLogger("capture").getEffectiveLevel())
+                   logging.getLogger("capture").getEffectiveLevel(), cluster)
 
 
 @dataclasses.dataclass

@@ -59,6 +59,9 @@ class IncrementalEngine:
     workers : processes fitting patches in parallel (1: in the engine's thread). The result
     does not depend on it.  total_views : views the scan will have, when known: the update
     that would fall on the last view is left to `finish`.
+    executor : a `concurrent.futures.Executor` for the fits instead of ``workers`` processes
+        (`capture.executors.make_executor`: local processes or a Dask cluster); the caller
+        shuts it down.
     schedule : view counts after which to update (a replay passes the live scan's, recorded in
         its mesh documents as ``figures["schedule"]``). None: every ``update_every`` views, and
         an update still queued when a newer one arrives is skipped, so the engine never lags
@@ -70,13 +73,15 @@ class IncrementalEngine:
     """
 
     def __init__(self, params: ReconstructionParams, on_mesh=None, background: bool = True,
-                 workers: int = 1, total_views: int | None = None, schedule=None):
+                 workers: int = 1, total_views: int | None = None, schedule=None,
+                 executor=None):
         self.params = params
         self.total_views = total_views
         self.schedule = None if schedule is None else sorted(int(v) for v in schedule)
         self.schedule_run: list[int] = []
         self.workers = int(workers)
-        self._executor = None
+        self._executor = executor  # injected (`capture.executors`): its owner shuts it down
+        self._owns_executor = executor is None
         self.on_mesh = on_mesh
         self.cloud = VoxelCloud(params.voxel_mm)
         self.cache = PatchCache(params)
@@ -92,7 +97,7 @@ class IncrementalEngine:
         self._lock = threading.Lock()
         self._queue: queue.Queue = queue.Queue()
         self._thread = None
-        if self.workers > 1:
+        if self._owns_executor and self.workers > 1:
             self._executor = concurrent.futures.ProcessPoolExecutor(
                 self.workers, mp_context=multiprocessing.get_context("spawn"))
             for _ in range(self.workers):  # import torch & co. while the scan starts
@@ -165,9 +170,9 @@ class IncrementalEngine:
             self._queue.put(_STOP)
             self._thread.join()
             self._thread = None
-        if self._executor is not None:
+        if self._executor is not None and self._owns_executor:
             self._executor.shutdown(wait=True, cancel_futures=True)
-            self._executor = None
+        self._executor = None
 
     # -- work ----------------------------------------------------------------------------------
     def _work(self) -> None:

@@ -1,0 +1,126 @@
+"""`scanstation reprocess` without a cluster: finding recordings, the fingerprint, atomic outputs,
+and the default path (local processes) that never imports Dask."""
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import uuid
+
+import pytest
+
+from capture.plan import ScanPlan
+from capture.reprocess import (
+    STAMP,
+    Job,
+    ReprocessError,
+    Reprocessor,
+    find_recordings,
+    up_to_date,
+    write_outputs,
+)
+from capture.runner import ScanRunner
+from tests.test_engine import FAST
+
+#: Tiny scans (6 views of 160×100 px, one frame each, only the final update): seconds each.
+PLAN = ScanPlan.turn(6, frames_per_view=1, settle_s=0.0,
+                     reconstruction=dataclasses.replace(FAST, update_every=0))
+
+
+def record(out_dir, obj: str, seed: int = 0) -> None:
+    """A live simulated scan of ``obj`` into ``out_dir`` (recording.mcap, mesh.ply, …)."""
+    station = f"reprocess-{uuid.uuid4().hex[:8]}"
+    runner = ScanRunner(PLAN, camera_url=f"sim://camera?width=160&height=100&object={obj}"
+                        f"&station={station}",
+                        turntable_url=f"sim://turntable?instant=1&station={station}",
+                        out_dir=out_dir, seed=seed)
+    assert runner.start().wait(timeout=300) == "done", runner.reason
+
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("scans") / "bust"
+    record(folder, "bust")
+    return folder
+
+
+def test_find_recordings_walks_folders_and_names_outputs(tmp_path):
+    for folder in ("a/scan1", "a/scan2", "b/deep/scan3"):
+        (tmp_path / folder).mkdir(parents=True)
+        (tmp_path / folder / "recording.mcap").write_bytes(b"x")
+    (tmp_path / "a" / "scan2" / "recording-2.mcap").write_bytes(b"y")
+    (tmp_path / "lone.mcap").write_bytes(b"z")
+    jobs = find_recordings([tmp_path / "a", tmp_path / "b", tmp_path / "lone.mcap"])
+    assert [j.name for j in jobs] == ["scan1", "scan2", "scan3", "lone"]
+    assert [p.name for p in jobs[1].segments] == ["recording.mcap", "recording-2.mcap"]
+    assert find_recordings([tmp_path / "a" / "scan1" / "recording.mcap"])[0].name == "scan1"
+    with pytest.raises(ReprocessError, match="no such file or folder"):
+        find_recordings([tmp_path / "missing"])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ReprocessError, match="no recording"):
+        find_recordings([tmp_path / "empty"])
+    (tmp_path / "c" / "scan1").mkdir(parents=True)
+    (tmp_path / "c" / "scan1" / "recording.mcap").write_bytes(b"x")
+    with pytest.raises(ReprocessError, match="would both write OUT/scan1"):
+        find_recordings([tmp_path / "a", tmp_path / "c"])
+    (tmp_path / "notes.txt").write_text("hello")
+    with pytest.raises(ReprocessError, match="not a recording"):
+        find_recordings([tmp_path / "notes.txt"])
+
+
+def test_fingerprint_follows_content_and_parameters(tmp_path):
+    source = tmp_path / "in" / "scan"
+    source.mkdir(parents=True)
+    (source / "recording.mcap").write_bytes(b"recorded bytes")
+    (job,) = find_recordings([source])
+    target = tmp_path / "out" / job.name
+    from capture.reprocess import fingerprint
+
+    files = {"mesh.ply": b"m", "cloud.ply": b"c", "scan.json": b"{}", "engine/engine.json": b"{}"}
+    write_outputs(target, files, fingerprint(job, {"lam": 2.0}))
+    assert up_to_date(target, job, {"lam": 2.0})
+    assert not up_to_date(target, job, {"lam": 3.0})
+    assert not up_to_date(target, job, {})
+    os.utime(source / "recording.mcap", ns=(1, 1))  # touched, same bytes: still up to date
+    assert up_to_date(target, job, {"lam": 2.0})
+    (source / "recording.mcap").write_bytes(b"recorded bytez")  # same size, new content
+    assert not up_to_date(target, job, {"lam": 2.0})
+    # a rewrite swaps the whole folder: no stale file from the previous outputs survives
+    write_outputs(target, {"mesh.ply": b"new"}, {"format": "x"})
+    assert sorted(p.name for p in target.iterdir()) == ["mesh.ply", STAMP]
+    assert [p.name for p in target.parent.iterdir()] == [job.name]
+
+
+def test_a_missing_segment_fails_that_recording_only(tmp_path):
+    gone = Job("gone", (tmp_path / "gone" / "recording.mcap",))
+    outcomes = Reprocessor(tmp_path / "out").run([gone])
+    assert outcomes[0].status == "failed" and "No such file" in outcomes[0].cause
+
+
+def test_default_path_runs_on_local_processes_without_importing_dask(scan, tmp_path):
+    corrupt = tmp_path / "corrupt.mcap"
+    corrupt.write_bytes(b"\x89MCAP0\r\n" + os.urandom(200))
+    out = tmp_path / "out"
+    script = (
+        "import sys, json\n"
+        "from capture.cli import main\n"
+        f"code = main(['reprocess', {str(scan)!r}, {str(corrupt)!r}, '-o', {str(out)!r},"
+        " '--workers', '2'])\n"
+        f"code2 = main(['replay', {str(scan)!r}, '-o', {str(tmp_path / 'replay')!r},"
+        " '--workers', '1'])\n"
+        "print(json.dumps([code, code2, sorted(m for m in sys.modules"
+        " if m.split('.')[0] in ('dask', 'distributed'))]))\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=600, cwd=os.getcwd())
+    code, code2, dask_modules = json.loads(run.stdout.strip().splitlines()[-1])
+    assert (code, code2) == (1, 0), run.stderr
+    assert dask_modules == []
+    assert "corrupt" in run.stdout and "failed" in run.stdout
+    live = (scan / "mesh.ply").read_bytes()
+    assert (out / "bust" / "mesh.ply").read_bytes() == live
+    assert (tmp_path / "replay" / "mesh.ply").read_bytes() == live
+    stamp = json.loads((out / "bust" / STAMP).read_text())
+    assert stamp["params"] == {} and stamp["segments"][0]["name"] == "recording.mcap"
+    report = json.loads((out / "bust" / "scan.json").read_text())
+    assert str(out / "bust") in report["files"]["mesh"]  # the final path, not the worker's

@@ -8,6 +8,7 @@ import threading  # noqa: E402
 import time  # noqa: E402
 
 import pytest  # noqa: E402
+from scan_helpers import FAST_PARAMS  # noqa: E402
 
 from capture.plan import ReconstructionParams  # noqa: E402
 
@@ -28,12 +29,7 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(scope="session")
 def fast_params() -> ReconstructionParams:
     """Tiny networks and coarse voxels: the engine's logic, not the paper's accuracy, on test."""
-    return ReconstructionParams(
-        max_layers=1, max_neurons=5, max_epochs=6, final_epochs=30, max_train_points=400,
-        polish_epochs=40, polish_patience=6, polish_train_points=600, voxel_mm=4.0,
-        min_views=1, n_sectors=3, overlap_deg=20.0, cap_fraction=0.15, cap_overlap_mm=6.0,
-        update_every=3, min_patch_points=40,
-    )
+    return FAST_PARAMS
 
 
 #: Our own worker threads are daemon threads (an interpreter may exit under a running scan), so

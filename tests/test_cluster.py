@@ -9,9 +9,9 @@ import threading
 import time
 
 import pytest
+from scan_helpers import record
 
 from capture.cli import main
-from tests.test_reprocess import record
 
 distributed = pytest.importorskip("distributed")
 

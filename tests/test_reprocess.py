@@ -1,16 +1,14 @@
 """`scanstation reprocess` without a cluster: finding recordings, the fingerprint, atomic outputs,
 and the default path (local processes) that never imports Dask."""
 
-import dataclasses
 import json
 import os
 import subprocess
 import sys
-import uuid
 
 import pytest
+from scan_helpers import record
 
-from capture.plan import ScanPlan
 from capture.reprocess import (
     STAMP,
     Job,
@@ -20,22 +18,6 @@ from capture.reprocess import (
     up_to_date,
     write_outputs,
 )
-from capture.runner import ScanRunner
-from tests.test_engine import FAST
-
-#: Tiny scans (6 views of 160×100 px, one frame each, only the final update): seconds each.
-PLAN = ScanPlan.turn(6, frames_per_view=1, settle_s=0.0,
-                     reconstruction=dataclasses.replace(FAST, update_every=0))
-
-
-def record(out_dir, obj: str, seed: int = 0) -> None:
-    """A live simulated scan of ``obj`` into ``out_dir`` (recording.mcap, mesh.ply, …)."""
-    station = f"reprocess-{uuid.uuid4().hex[:8]}"
-    runner = ScanRunner(PLAN, camera_url=f"sim://camera?width=160&height=100&object={obj}"
-                        f"&station={station}",
-                        turntable_url=f"sim://turntable?instant=1&station={station}",
-                        out_dir=out_dir, seed=seed)
-    assert runner.start().wait(timeout=300) == "done", runner.reason
 
 
 @pytest.fixture(scope="module")

@@ -153,7 +153,7 @@ class ScanPlan:
         _number(self, "voxel_mm", 0.05, 100.0)
         _number(self, "outlier_std", 0.0, 100.0, low_open=True)
         _number(self, "settle_s", 0.0, 60.0)
-        _number(self, "reconnect_timeout_s", 0.0, 3600.0)
+        _number(self, "reconnect_timeout_s", 0.0, 7 * 86400.0)  # a week without its device
         v = self.volume
         if not all(_is_number(x) for x in v):
             raise PlanError(f"volume must be three numbers (radius_mm, z_min_mm, z_max_mm), "

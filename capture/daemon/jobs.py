@@ -11,6 +11,9 @@ store (state, progress, mesh version). An ``interrupted`` scan (the daemon died 
 it) resumes from its last completed view with a new runner reading the recording (or from the
 start when it recorded nothing), or is re-processed from the recording alone. Reasons shown to
 clients name no server path.
+
+(Longer than most files here: the commands, the admission queue and the scans' threads keep
+one set of invariants — who holds which device, what runs, what waits — under one lock.)
 """
 
 from __future__ import annotations

@@ -91,6 +91,7 @@ def create_app(state_dir: str | Path, *, token: str = "", require_token: bool = 
         store = prepare_state_dir(state_dir)
         if runner_factory is default_runner_factory:
             threading.Thread(target=warm_up, name="forkserver-warm-up", daemon=True).start()
+        threading.Thread(target=_import_backends, name="backend-imports", daemon=True).start()
         app.state.interrupted_at_start = store.recover()
         if app.state.interrupted_at_start:
             log.warning("scans interrupted by the last stop (resume or re-process them): %s",
@@ -135,6 +136,16 @@ def create_app(state_dir: str | Path, *, token: str = "", require_token: bool = 
 
     limited = BodySizeLimit(app, max_body_bytes, body_timeout_s)
     return LoopbackHostGuard(limited) if loopback_hosts_only else limited
+
+
+def _import_backends() -> None:
+    """Import the serial and simulated backends now, so that the first POST that checks a
+    device URL answers in milliseconds too (no vendor SDK: those load when a device opens)."""
+    import importlib
+
+    for name in ("drivers.grbl", "sim.camera", "sim.turntable"):
+        with contextlib.suppress(ImportError):
+            importlib.import_module(name)
 
 
 async def same_origin_json(request: Request) -> None:

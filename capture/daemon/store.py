@@ -39,6 +39,21 @@ _SIDE_FILES = ("-wal", "-shm")
 class StoreError(DaemonError, RuntimeError):
     """A job store the daemon cannot use or repair (one line naming the file and the fix)."""
 
+
+class _Damaged(sqlite3.DatabaseError):
+    """The store's integrity check failed."""
+
+
+def _is_damage(exc: Exception) -> bool:
+    """Whether opening or reading failed because the file's content is damaged (not because
+    it cannot be opened, is locked or read-only)."""
+    if isinstance(exc, (_Damaged, ValueError)):
+        return True
+    name = getattr(exc, "sqlite_errorname", "")  # Python >= 3.11
+    text = str(exc).lower()
+    return name in ("SQLITE_CORRUPT", "SQLITE_NOTADB") or "malformed" in text or \
+        "not a database" in text
+
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS scans (
     id TEXT PRIMARY KEY,
@@ -117,6 +132,9 @@ class JobStore:
         except StoreError:
             raise
         except (sqlite3.DatabaseError, ValueError) as exc:
+            if not _is_damage(exc):  # e.g. not ours to read: moving it aside would not help
+                raise StoreError(f"{self.path}: cannot open the job store ({exc}): check the "
+                                 "file's owner and permissions") from exc
             self._set_aside(exc)
             self._open()
             bad = []
@@ -142,7 +160,7 @@ class JobStore:
                                  "file away to rebuild the store from the scan folders")
             check = self._db.execute("PRAGMA quick_check").fetchone()[0]
             if check != "ok":
-                raise sqlite3.DatabaseError(f"integrity check: {check}")
+                raise _Damaged(f"integrity check: {check}")
             self._db.executescript(SCHEMA)
             self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
 

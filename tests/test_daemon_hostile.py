@@ -445,3 +445,24 @@ def test_healthz_answers_while_a_post_waits_for_a_slow_child(state_dir):
             scan_id = created.json()["id"]
             wait_until(lambda: http.get(f"/api/v1/scans/{scan_id}").json()["state"]
                        == "failed", 60, what="the scan to fail")
+
+
+def test_a_scan_whose_orphaned_process_still_runs_is_not_resumed_twice(client, state_dir):
+    import fcntl
+
+    scan = client.post("/api/v1/scans", json={"plan": capture_plan(30, settle_s=0.2),
+                                              **station_urls()}).json()
+    wait_for_state(client, scan["id"], "running")
+    client.post(f"/api/v1/scans/{scan['id']}/cancel")
+    wait_for_state(client, scan["id"], "interrupted")
+    # a killed daemon's scan process still holds the folder
+    with open(state_dir / "scans" / scan["id"] / ".scan.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        busy = client.post(f"/api/v1/scans/{scan['id']}/resume")
+        assert busy.status_code == 409 and "still stopping" in _detail(busy)
+        assert client.post(f"/api/v1/scans/{scan['id']}/reprocess").status_code == 409
+    resumed = client.post(f"/api/v1/scans/{scan['id']}/resume")
+    assert resumed.status_code == 202
+    wait_for_state(client, scan["id"], "running")
+    client.post(f"/api/v1/scans/{scan['id']}/cancel")
+    wait_for_state(client, scan["id"], "interrupted")

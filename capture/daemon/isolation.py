@@ -264,10 +264,52 @@ def _out_of_memory(exc: BaseException) -> bool:
     return False
 
 
+SCAN_LOCK = ".scan.lock"
+
+
+def _hold_folder(folder: Path):
+    """Lock ``folder`` for this process's life (released by the kernel when it ends), so that a
+    restarted daemon does not resume a scan whose orphaned process still writes it."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX
+        return None
+    folder.mkdir(parents=True, exist_ok=True)
+    handle = open(folder / SCAN_LOCK, "a")  # noqa: SIM115 (held until the process ends)
+    fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    return handle
+
+
+def folder_in_use(folder: Path) -> bool:
+    """Whether a scan process (of this daemon or of a killed one) still holds ``folder``."""
+    try:
+        import fcntl
+    except ImportError:
+        return False
+    try:
+        with open(Path(folder) / SCAN_LOCK, "a") as handle:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return True
+            fcntl.flock(handle, fcntl.LOCK_UN)
+    except OSError:  # no folder (yet): nobody holds it
+        return False
+    return False
+
+
 def _child(documents, commands, spec: RunSpec) -> None:
     """The child process: run the scan, forward its documents, obey commands."""
     os.umask(0o077)
     os.nice(SCAN_NICENESS)
+    try:
+        held = _hold_folder(spec.out_dir)  # noqa: F841 (kept open for the process's life)
+    except BlockingIOError:
+        documents.send(("end", "failed", "the scan's folder is in use by another scan process "
+                        "(of a daemon that was killed): try again once it stopped"))
+        return
+    except OSError:  # the folder cannot be made: the runner's own check says why
+        held = None  # noqa: F841
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     for name in ("capture", "reconstruct", "drivers", "sim"):
         logging.getLogger(name).setLevel(spec.log_level)

@@ -37,7 +37,13 @@ from drivers.errors import DeviceError
 
 from .errors import Conflict, InvalidRequest, OutsideScanFolder, TooBusy, UnknownScan
 from .events import EventChannel, EventHub
-from .isolation import DEFAULT_OBJECT_MEMORY_BYTES, ProcessRunner, RunSpec, build_runner
+from .isolation import (
+    DEFAULT_OBJECT_MEMORY_BYTES,
+    ProcessRunner,
+    RunSpec,
+    build_runner,
+    folder_in_use,
+)
 from .policy import DevicePolicy
 from .refine import MeshRefiner
 from .schemas import ScanRequest, check_scan_request, device_keys, is_scan_id
@@ -242,6 +248,7 @@ class ScanJobs:
                 self._check_free(record.devices)
                 self._check_room(record.devices)
                 self._check_not_refining(scan_id)
+                self._check_folder_free(record)
                 self.refiner.forget(scan_id)
                 folder = self.scan_dir(record)
                 from .downloads import recording_segments
@@ -288,6 +295,7 @@ class ScanJobs:
             if not recording_segments(self.scan_dir(record)):
                 raise Conflict(f"scan {scan_id} has no recording to re-process")
             self._check_not_refining(scan_id)
+            self._check_folder_free(record)
             self._check_room([])
             self.refiner.forget(scan_id)  # the replay writes a new engine state
             self._admit(record, None, None, replay=True)
@@ -356,6 +364,11 @@ class ScanJobs:
     # -- internals (lock held) -----------------------------------------------------------------
     def _active(self, scan_id: str) -> bool:
         return scan_id in self._live or scan_id in self._queue
+
+    def _check_folder_free(self, record: ScanRecord) -> None:
+        if folder_in_use(self.scan_dir(record)):
+            raise Conflict(f"scan {record.id}: the process of its last run (of a daemon that was "
+                           "killed) is still stopping: try again in a few seconds")
 
     def _check_not_refining(self, scan_id: str) -> None:
         if self._refining.get(scan_id):

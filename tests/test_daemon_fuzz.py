@@ -37,6 +37,7 @@ OPERATIONS = {f"{op.method.upper()} {op.path}": op for op in (
 def daemon(tmp_path_factory):
     state_dir = tmp_path_factory.mktemp("fuzz") / "state"
     with TestClient(create_app(state_dir, max_running=1, max_queued=1)) as client:
+        client.get("/api/v1/devices")  # the first discovery (USB, network) may take a second
         yield client
 
 

@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import threading
+import time
 import urllib.parse
 from pathlib import Path
 from typing import Annotated
@@ -54,6 +56,7 @@ ScanId = Annotated[str, PathParam(pattern=SCAN_ID_PATTERN, description="16 hex d
 #: SSE ids and offsets: a number a client can hold without overflowing anything (2^53)
 MAX_COUNT = 2**53
 _STATE_CHANGING = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+DISCOVERY_MAX_AGE_S = 10.0
 
 
 def prepare_state_dir(state_dir: Path) -> JobStore:
@@ -91,7 +94,8 @@ def create_app(state_dir: str | Path, *, token: str = "", require_token: bool = 
         store = prepare_state_dir(state_dir)
         if runner_factory is default_runner_factory:
             threading.Thread(target=warm_up, name="forkserver-warm-up", daemon=True).start()
-        threading.Thread(target=_import_backends, name="backend-imports", daemon=True).start()
+        threading.Thread(target=_import_backends, args=(app.state.discovery,),
+                         name="backend-imports", daemon=True).start()
         app.state.interrupted_at_start = store.recover()
         if app.state.interrupted_at_start:
             log.warning("scans interrupted by the last stop (resume or re-process them): %s",
@@ -109,6 +113,7 @@ def create_app(state_dir: str | Path, *, token: str = "", require_token: bool = 
     app = FastAPI(title="ScanStation daemon", version="1", lifespan=lifespan, docs_url=None,
                   redoc_url=None, description=__doc__)
     app.state.auth = auth
+    app.state.discovery = Discovery()
     app.state.heartbeat_s = heartbeat_s
     _add_error_handlers(app)
     app.include_router(_api_router(), prefix="/api/v1",
@@ -138,14 +143,35 @@ def create_app(state_dir: str | Path, *, token: str = "", require_token: bool = 
     return LoopbackHostGuard(limited) if loopback_hosts_only else limited
 
 
-def _import_backends() -> None:
+def _import_backends(discovery: Discovery) -> None:
     """Import the serial and simulated backends now, so that the first POST that checks a
-    device URL answers in milliseconds too (no vendor SDK: those load when a device opens)."""
+    device URL answers in milliseconds too, and discover the devices once."""
     import importlib
 
     for name in ("drivers.grbl", "sim.camera", "sim.turntable"):
         with contextlib.suppress(ImportError):
             importlib.import_module(name)
+    discovery.rows()
+
+
+class Discovery:
+    """Backends and visible devices (`drivers.registry.list_devices`), discovered at most every
+    ``max_age_s`` seconds: discovery asks USB and the network (up to a second with an SDK
+    installed), and concurrent requests share one discovery instead of each starting theirs."""
+
+    def __init__(self, max_age_s: float = DISCOVERY_MAX_AGE_S):
+        self.max_age_s = max_age_s
+        self._lock = threading.Lock()
+        self._rows: list = []
+        self._at = -math.inf
+
+    def rows(self) -> list:
+        with self._lock:
+            if time.monotonic() - self._at > self.max_age_s:
+                from drivers.registry import list_devices
+
+                self._rows, self._at = list_devices(), time.monotonic()
+            return self._rows
 
 
 async def same_origin_json(request: Request) -> None:
@@ -189,13 +215,12 @@ def _api_router() -> APIRouter:
     api = APIRouter()
 
     @api.get("/devices", tags=["devices"])
-    def devices(jobs: Jobs) -> dict:
-        """Every backend (status, visible devices) and the devices held by running scans."""
-        from drivers.registry import list_devices
-
+    def devices(jobs: Jobs, request: Request) -> dict:
+        """Every backend (status, visible devices; discovered at most every
+        ``DISCOVERY_MAX_AGE_S`` s) and the devices held by running scans."""
         busy = jobs.busy_devices()
         backends = [{"kind": kind, "scheme": scheme, "status": status, "urls": urls}
-                    for kind, scheme, status, urls in list_devices()]
+                    for kind, scheme, status, urls in request.app.state.discovery.rows()]
         return {"backends": backends,
                 "busy": [{"device": key, "scan": scan} for key, scan in sorted(busy.items())]}
 

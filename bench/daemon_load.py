@@ -210,7 +210,12 @@ def run_kill(state_dir: Path, port: int, log: Path, kill_after: int, first_start
     restarted = Daemon(state_dir, port, log)
     after = restarted.api("GET", f"/scans/{scan_id}")
     started = time.perf_counter()
-    restarted.api("POST", f"/scans/{scan_id}/resume")
+    while True:  # 409 while the killed daemon's scan process still stops (one step at most)
+        answer = httpx.post(f"{restarted.url}/api/v1/scans/{scan_id}/resume", timeout=30)
+        if answer.status_code != 409 or time.perf_counter() - started > 120:
+            answer.raise_for_status()
+            break
+        time.sleep(0.2)
     done = restarted.wait(scan_id, lambda s: s["state"] in ("done", "failed"))
     resume_s = time.perf_counter() - started
     views = sorted(v.index for v in read_recording(folder).views)

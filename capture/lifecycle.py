@@ -63,6 +63,7 @@ class RunLifecycle:
         self._pause_requested = threading.Event()
         self._resume_requested = threading.Event()
         self._cancel_requested = threading.Event()
+        self.cancel_reason = "cancelled by the user"
 
     # -- state ---------------------------------------------------------------------------------
     @property
@@ -124,8 +125,10 @@ class RunLifecycle:
             raise InvalidTransition(f"cannot resume a scan that is {self._state}")
         self._resume_requested.set()
 
-    def cancel(self) -> None:
-        """Stop after the current step; what was recorded stays (state ``interrupted``)."""
+    def cancel(self, reason: str = "cancelled by the user") -> None:
+        """Stop after the current step; what was recorded stays (state ``interrupted``, with
+        ``reason``: who or what cancelled)."""
+        self.cancel_reason = reason
         if self._state == "idle":
             self._transition("cancel")
             self.reason = "cancelled before it started"

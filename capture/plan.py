@@ -17,6 +17,9 @@ from .volume import Cylinder
 FORMAT = "scanstation-plan/1"
 COMBINE_METHODS = ("median", "mean", "first")
 ON_DEVICE_LOST = ("wait", "fail")
+#: what a station can do: more views than this is a mistake, not a scan (0.1° steps)
+MAX_VIEWS = 3600
+MAX_ANGLE_DEG = 36_000.0  # absolute table angles: up to a hundred turns either way
 
 
 class PlanError(ValueError):
@@ -67,24 +70,23 @@ class ReconstructionParams:
     min_patch_points: int = 200
 
     def validate(self) -> None:
-        _positive(self, "voxel_mm", "cap_overlap_mm", allow_zero=("cap_overlap_mm",))
-        _whole(self, "depth", "max_layers", "max_neurons", "max_epochs", "final_epochs",
-               "max_train_points", "polish_epochs", "polish_patience", "polish_train_points")
-        _whole(self, "update_every", "min_patch_points", minimum=0)
-        _whole(self, "min_views", minimum=1)
-        if not (math.isfinite(self.lam) and self.lam >= 0):
-            raise PlanError(f"reconstruction.lam must be a finite number >= 0, got {self.lam}")
-        if not 3 <= self.n_sectors <= 36:
-            raise PlanError(f"reconstruction.n_sectors must be in [3, 36], got {self.n_sectors}")
-        if not 0 <= self.overlap_deg < 360.0 / self.n_sectors:
-            raise PlanError(f"reconstruction.overlap_deg must be in [0, {360 / self.n_sectors:g})"
-                            f", got {self.overlap_deg}")
-        if not 0 < self.cap_fraction < 1:
-            raise PlanError(f"reconstruction.cap_fraction must be in (0, 1), got "
-                            f"{self.cap_fraction}")
-        if not 0 <= self.min_growth < 10:
-            raise PlanError(f"reconstruction.min_growth must be in [0, 10), got "
-                            f"{self.min_growth}")
+        _number(self, "voxel_mm", 0.05, 100.0)
+        _number(self, "lam", 0.0, 1e6)
+        _number(self, "cap_overlap_mm", 0.0, 1000.0)
+        _whole(self, "depth", maximum=16)
+        _whole(self, "max_layers", maximum=8)
+        _whole(self, "max_neurons", maximum=1024)
+        _whole(self, "max_epochs", "final_epochs", "polish_epochs", maximum=100_000)
+        _whole(self, "polish_patience", maximum=10_000)
+        _whole(self, "max_train_points", "polish_train_points", maximum=1_000_000)
+        _whole(self, "seed", minimum=0, maximum=2**32 - 1)
+        _whole(self, "update_every", minimum=0, maximum=MAX_VIEWS)
+        _whole(self, "min_patch_points", minimum=0, maximum=1_000_000)
+        _whole(self, "min_views", minimum=1, maximum=MAX_VIEWS)
+        _whole(self, "n_sectors", minimum=3, maximum=36)
+        _number(self, "overlap_deg", 0.0, 360.0 / self.n_sectors, high_open=True)
+        _number(self, "cap_fraction", 0.0, 1.0, low_open=True, high_open=True)
+        _number(self, "min_growth", 0.0, 10.0, high_open=True)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,23 +136,35 @@ class ScanPlan:
         """Raise `PlanError` (one line) for a plan that cannot run; return self."""
         if not self.angles:
             raise PlanError("the plan has no views (angles is empty)")
-        bad = [a for a in self.angles if not math.isfinite(a)]
+        if len(self.angles) > MAX_VIEWS:
+            raise PlanError(f"angles: at most {MAX_VIEWS} views, got {len(self.angles)}")
+        bad = [a for a in self.angles if not (math.isfinite(a) and abs(a) <= MAX_ANGLE_DEG)]
         if bad:
-            raise PlanError(f"angles must be finite degrees, got {bad[0]}")
-        _whole(self, "frames_per_view", minimum=1)
-        _whole(self, "outlier_neighbors", minimum=0)
+            raise PlanError(f"angles must be finite degrees within ±{MAX_ANGLE_DEG:g}, "
+                            f"got {bad[0]:g}")
+        _whole(self, "frames_per_view", minimum=1, maximum=100)
+        _whole(self, "outlier_neighbors", minimum=0, maximum=100)
         if self.combine not in COMBINE_METHODS:
             raise PlanError(f"combine must be one of {', '.join(COMBINE_METHODS)}, "
                             f"got {self.combine!r}")
         if self.on_device_lost not in ON_DEVICE_LOST:
             raise PlanError(f"on_device_lost must be one of {', '.join(ON_DEVICE_LOST)}, "
                             f"got {self.on_device_lost!r}")
-        _positive(self, "voxel_mm", "outlier_std", "settle_s", "reconnect_timeout_s",
-                  allow_zero=("settle_s", "reconnect_timeout_s"))
+        _number(self, "voxel_mm", 0.05, 100.0)
+        _number(self, "outlier_std", 0.0, 100.0, low_open=True)
+        _number(self, "settle_s", 0.0, 60.0)
+        _number(self, "reconnect_timeout_s", 0.0, 7 * 86400.0)  # a week without its device
         v = self.volume
-        if not (v.radius_mm > 0 and v.z_max_mm > v.z_min_mm):
-            raise PlanError(f"volume must have radius > 0 and z_max > z_min, got {tuple(v)}")
+        if not all(_is_number(x) for x in v):
+            raise PlanError(f"volume must be three numbers (radius_mm, z_min_mm, z_max_mm), "
+                            f"got {tuple(v)!r}")
+        if not (0 < v.radius_mm <= 2000 and -1000 <= v.z_min_mm < v.z_max_mm <= 5000):
+            raise PlanError(f"volume must have 0 < radius_mm <= 2000 and -1000 <= z_min_mm < "
+                            f"z_max_mm <= 5000 (mm), got {tuple(v)}")
         if self.reconstruction is not None:
+            if not isinstance(self.reconstruction, ReconstructionParams):
+                raise PlanError("reconstruction must be an object of reconstruction parameters "
+                                "or null")
             self.reconstruction.validate()
         return self
 
@@ -184,6 +198,9 @@ class ScanPlan:
             if data.get("reconstruction") is not None:
                 data["reconstruction"] = ReconstructionParams(**data["reconstruction"])
             plan = cls(**data)
+        except OverflowError as exc:  # only angles are converted: a 400-digit integer
+            raise PlanError(f"angles must be finite degrees, got a number too large ({exc})") \
+                from exc
         except (TypeError, ValueError) as exc:
             raise PlanError(f"bad plan: {exc}") from exc
         return plan.validate()
@@ -197,20 +214,30 @@ class ScanPlan:
         return cls.from_dict(data)
 
 
-def _positive(obj, *names: str, allow_zero: tuple[str, ...] = ()) -> None:
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and \
+        math.isfinite(value)
+
+
+def _number(obj, name: str, low: float, high: float, low_open: bool = False,
+            high_open: bool = False) -> None:
+    """``name`` must be a finite number in the interval (brackets as shown in the message)."""
+    prefix = "reconstruction." if isinstance(obj, ReconstructionParams) else ""
+    value = getattr(obj, name)
+    ok = _is_number(value) and (value > low if low_open else value >= low) and \
+        (value < high if high_open else value <= high)
+    if not ok:
+        interval = f"{'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+        raise PlanError(f"{prefix}{name} must be a finite number in {interval}, got {value!r}")
+
+
+def _whole(obj, *names: str, minimum: int = 1, maximum: int | None = None) -> None:
     prefix = "reconstruction." if isinstance(obj, ReconstructionParams) else ""
     for name in names:
         value = getattr(obj, name)
-        ok = isinstance(value, (int, float)) and math.isfinite(value)
-        ok = ok and (value >= 0 if name in allow_zero else value > 0)
-        if not ok:
-            bound = ">= 0" if name in allow_zero else "> 0"
-            raise PlanError(f"{prefix}{name} must be a finite number {bound}, got {value!r}")
-
-
-def _whole(obj, *names: str, minimum: int = 1) -> None:
-    prefix = "reconstruction." if isinstance(obj, ReconstructionParams) else ""
-    for name in names:
-        value = getattr(obj, name)
-        if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-            raise PlanError(f"{prefix}{name} must be a whole number >= {minimum}, got {value!r}")
+        ok = not isinstance(value, bool) and isinstance(value, int) and value >= minimum
+        if not ok or (maximum is not None and value > maximum):
+            upper = "" if maximum is None else f" and <= {maximum}"
+            shown = value if not isinstance(value, int) or abs(value) < 10**12 else "a huge number"
+            raise PlanError(f"{prefix}{name} must be a whole number >= {minimum}{upper}, "
+                            f"got {shown!r}")

@@ -213,7 +213,7 @@ class ScanRunner(RunLifecycle):
         except Cancelled:
             if self._state != "stopping":
                 self._transition("stop")
-            self._end("interrupt", "cancelled by the user")
+            self._end("interrupt", self.cancel_reason)
         except Exception as exc:
             self.error = exc
             log.error("scan failed: %s", exc)

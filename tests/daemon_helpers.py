@@ -102,3 +102,41 @@ class LiveServer:
     def __exit__(self, *exc) -> None:
         self.server.should_exit = True
         self.thread.join(20)
+
+
+def one_line_detail(response) -> str:
+    detail = response.json()["detail"]
+    assert isinstance(detail, str) and "\n" not in detail
+    return detail
+
+
+class GatedRunner:
+    """A runner whose start blocks until the test opens ``gate`` (a device that has not
+    answered yet); then it runs until cancelled."""
+
+    def __init__(self, gate: threading.Event):
+        self.gate, self.state, self.reason = gate, "idle", ""
+        self.started, self._ended = threading.Event(), threading.Event()
+        self.documents = []
+
+    def subscribe(self, callback):
+        return lambda: None
+
+    def start(self):
+        self.started.set()
+        self.gate.wait(30)
+        self.state = "running"
+        return self
+
+    def pause(self):
+        raise RuntimeError("not in this test")
+
+    resume = pause
+
+    def cancel(self):
+        self.state, self.reason = "interrupted", "cancelled by the user"
+        self._ended.set()
+
+    def wait(self, timeout=None):
+        self._ended.wait(timeout)
+        return self.state

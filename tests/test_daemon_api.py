@@ -37,12 +37,14 @@ def start(client, views=4, settle_s=0.0, urls=None, **plan_fields) -> dict:
 def test_a_scan_runs_to_done_and_offers_its_recording_and_report(client, tmp_path):
     scan = start(client, views=4)
     assert re.fullmatch(r"[0-9a-f]{16}", scan["id"])
-    assert scan["state"] in ("running", "done")
+    assert scan["state"] in ("queued", "starting")  # answered before the devices open
     done = wait_for_state(client, scan["id"], "done", "failed")
     assert done["state"] == "done", done["reason"]
     assert done["progress"] == {"views_done": 4, "views_total": 4, "fraction": 1.0}
     assert done["files"] == {"mesh": False, "recording_segments": 1, "report": True}
-    assert done["plan"]["angles"] == [0.0, 90.0, 180.0, 270.0]
+    assert done["plan"]["n_views"] == 4 and "angles" not in done["plan"]
+    assert client.get(f"/api/v1/scans/{scan['id']}/plan").json()["angles"] == \
+        [0.0, 90.0, 180.0, 270.0]
 
     recording = client.get(f"/api/v1/scans/{scan['id']}/recording")
     assert recording.status_code == 200
@@ -83,6 +85,7 @@ def test_one_scan_per_device_and_many_stations_at_once(client):
 def test_pause_resume_and_cancel_follow_the_state_table(client):
     scan = start(client, views=40, settle_s=0.1)
     scan_id = scan["id"]
+    wait_for_state(client, scan_id, "running")
     assert client.post(f"/api/v1/scans/{scan_id}/pause").status_code == 202
     paused = wait_for_state(client, scan_id, "paused")
     assert paused["reason"] == "paused by the user"
@@ -121,6 +124,7 @@ def test_an_interrupted_scan_survives_a_restart_and_resumes_from_its_last_view(s
 def test_delete_refuses_an_active_scan_and_removes_an_ended_one(client, state_dir):
     scan = start(client, views=30, settle_s=0.2)
     assert client.delete(f"/api/v1/scans/{scan['id']}").status_code == 409
+    wait_for_state(client, scan["id"], "running")
     client.post(f"/api/v1/scans/{scan['id']}/cancel")
     wait_for_state(client, scan["id"], "interrupted")
     folder = state_dir / "scans" / scan["id"]
@@ -139,7 +143,7 @@ def test_delete_refuses_an_active_scan_and_removes_an_ended_one(client, state_di
     ({"camera_url": "foo://x"}, "no camera backend for 'foo://x'"),
     ({"camera_url": "sim://camera?width=abc"}, "width"),
     ({"turntable_url": "sim://turntable?bogus=1"}, "bogus"),
-    ({"object": "/no/such/mesh.stl"}, "no such file"),
+    ({"object": "/no/such/mesh.stl"}, "--object-dir"),  # files: the operator's folder only
     ({"object": ""}, "object"),
     ({"colour": "red"}, "colour"),
 ])

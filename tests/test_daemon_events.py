@@ -139,7 +139,8 @@ def test_many_clients_watch_one_scan_live_and_see_the_same_stream(tmp_path):
             watcher.join(60)
         assert all(result == results[0] for result in results)
         kinds = [doc["kind"] for _, doc in results[0]]
-        assert kinds[:2] == ["state", "start"] and kinds[-2:] == ["stop", "state"]
+        assert kinds[:3] == ["state", "state", "start"] and kinds[-2:] == ["stop", "state"]
+        assert [doc["state"] for _, doc in results[0][:2]] == ["starting", "running"]
         assert kinds.count("view") == 6 and kinds.count("progress") == 6
         assert results[0][-1][1]["state"] == "done"
         ids = [event_id for event_id, _ in results[0]]

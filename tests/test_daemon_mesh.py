@@ -97,7 +97,7 @@ def test_reprocess_rebuilds_the_mesh_from_the_recording(finished):
     scan_id = scan["id"]
     answer = client.post(f"/api/v1/scans/{scan_id}/reprocess")
     assert answer.status_code == 202
-    assert answer.json()["state"] in ("processing", "done")
+    assert answer.json()["state"] in ("queued", "starting", "processing", "done")
     done = wait_for_state(client, scan_id, "done", "failed", timeout=300)
     assert done["state"] == "done", done["reason"]
     assert done["mesh_params"]["file"] == "mesh.ply"
@@ -139,3 +139,20 @@ def test_no_reprocess_resume_or_delete_while_a_refine_runs(finished):
         jobs.refiner.remesh = real
     assert answers[0].status_code == 200, answers[0].text
     assert client.post(f"/api/v1/scans/{scan['id']}/refine", json={"lam": 2.0}).status_code == 200
+
+
+def test_a_refine_that_fails_is_422_with_the_cause_and_keeps_the_mesh(finished):
+    client, scan, _ = finished
+    scan_id = scan["id"]
+    before = client.get(f"/api/v1/scans/{scan_id}").json()
+    mesh = client.get(f"/api/v1/scans/{scan_id}/mesh").content
+    answer = client.post(f"/api/v1/scans/{scan_id}/refine", json={"lam": 1000})
+    assert answer.status_code == 422, answer.text
+    detail = answer.json()["detail"]
+    assert "boundary spline collapsed" in detail and "previous mesh is kept" in detail
+    after = client.get(f"/api/v1/scans/{scan_id}").json()
+    assert after["mesh_version"] == before["mesh_version"]
+    assert after["mesh_params"] == before["mesh_params"]
+    assert client.get(f"/api/v1/scans/{scan_id}/mesh").content == mesh
+    again = client.post(f"/api/v1/scans/{scan_id}/refine", json={"lam": 4.0})
+    assert again.status_code == 200, again.text  # the refiner is still usable

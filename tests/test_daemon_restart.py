@@ -4,6 +4,7 @@ its recording intact, and resume finishes it (with a mesh); SIGTERM stops it cle
 from __future__ import annotations
 
 import io
+import json
 import os
 import signal
 import subprocess
@@ -80,6 +81,11 @@ def test_sigkill_mid_scan_then_restart_resume_finishes_it(tmp_path, daemons):
     assert first.process.returncode == -signal.SIGKILL
 
     folder = state_dir / "scans" / scan_id
+    # the orphaned scan child stops by itself and says why (not "cancelled by the user")
+    report = wait_until(lambda: (folder / "scan.json").is_file() and json.loads(
+        (folder / "scan.json").read_text()), 60, what="the orphaned child's report")
+    assert report["state"] == "interrupted"
+    assert "the daemon" in report["reason"] and "user" not in report["reason"]
     recording = read_recording(folder)  # no footer: read with the non-seeking reader
     recorded = [view.index for view in recording.views]
     assert recorded == list(range(len(recorded))) and seen <= len(recorded) < VIEWS

@@ -48,10 +48,11 @@ def test_restart_lists_every_scan_left_active_as_interrupted(tmp_path):
     # the process dies without closing: a second process opens the same file
     second = JobStore(path)
     recovered = second.recover()
-    assert recovered == [f"{i:016x}" for i in range(5)]
+    assert recovered == [f"{i:016x}" for i in range(len(ACTIVE_STATES) + 1)]
     states = {r.id: r.state for r in second.list()}
     assert set(states.values()) == {"interrupted", "done", "failed"}
-    assert states[f"{5:016x}"] == "done" and states[f"{6:016x}"] == "failed"
+    n = len(ACTIVE_STATES) + 1
+    assert states[f"{n:016x}"] == "done" and states[f"{n + 1:016x}"] == "failed"
     assert "daemon stopped" in second.get(f"{0:016x}").reason
     assert second.recover() == []  # nothing left to recover
     first.close()

@@ -28,6 +28,25 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument("--max-body", type=int, default=1 << 20, metavar="BYTES",
                         help="largest request body accepted (1 MiB)")
+    parser.add_argument(
+        "--allow-device", action="append", metavar="URL",
+        default=os.environ.get("SCANSTATION_ALLOW_DEVICES", "").split(),
+        help="a device that scans may use beyond serial ports and loopback addresses, e.g. "
+        "socket://10.0.0.5:23 (a ser2net turntable; no port: any port) or oak://192.168.1.44; "
+        "repeat for more ($SCANSTATION_ALLOW_DEVICES, space-separated)")
+    parser.add_argument(
+        "--object-dir", metavar="DIR", default=os.environ.get("SCANSTATION_OBJECT_DIR"),
+        help="folder of mesh files that scans may name as the simulated camera's object "
+        "(default: built-in objects only; $SCANSTATION_OBJECT_DIR)")
+    parser.add_argument("--max-object-mib", type=float, default=256, metavar="MIB",
+                        help="largest object file accepted (256 MiB)")
+    parser.add_argument("--object-memory-mib", type=float, default=2048, metavar="MIB",
+                        help="memory a scan process may take to load its object (2048 MiB)")
+    parser.add_argument("--max-scans", type=int, default=2, metavar="N",
+                        help="scans without a real device (simulated, re-processing) at once; "
+                        "a real device runs one scan at a time (2)")
+    parser.add_argument("--max-queued", type=int, default=8, metavar="N",
+                        help="scans waiting for a slot before new ones get 429 (8)")
     parser.add_argument("--access-log", action="store_true", help="log every request")
     from .scan import add_cluster_option
 
@@ -38,15 +57,29 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     import uvicorn
 
-    from capture.daemon.app import create_app
+    from capture.daemon.app import create_app, prepare_state_dir
     from capture.daemon.auth import TOKEN_FILE, is_loopback, load_or_create_token
+    from capture.daemon.store import StoreError
 
     if not 0 <= args.port <= 65535:
         raise ValueError(f"--port must be in [0, 65535], got {args.port}")
     if args.max_body < 0:
         raise ValueError(f"--max-body must be >= 0 bytes, got {args.max_body}")
+    if args.max_scans < 1 or args.max_queued < 0:
+        raise ValueError("--max-scans must be >= 1 and --max-queued >= 0")
+    if not (args.max_object_mib > 0 and args.object_memory_mib > 0):
+        raise ValueError("--max-object-mib and --object-memory-mib must be > 0")
+    object_dir = None
+    if args.object_dir:
+        object_dir = Path(args.object_dir).expanduser()
+        if not object_dir.is_dir():
+            raise ValueError(f"--object-dir {object_dir} is not a folder")
+    os.umask(0o077)  # the job store, recordings, meshes: the daemon's user's only
     state_dir = Path(args.state_dir).expanduser()
-    state_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
+    try:  # checked (repaired) before serving: a damaged store is one line, not a traceback
+        prepare_state_dir(state_dir).close()
+    except StoreError as exc:
+        raise SystemExit(f"scanstation: error: {exc}") from None
     token, created = load_or_create_token(state_dir)
     required = not is_loopback(args.host)
     if created:
@@ -65,7 +98,11 @@ def run(args) -> int:
                                                       cluster=args.cluster)
         log.info("scans fit on the Dask cluster %s", args.cluster)
     app = create_app(state_dir, token=token, require_token=required,
-                     max_body_bytes=args.max_body, loopback_hosts_only=not required, **options)
+                     max_body_bytes=args.max_body, loopback_hosts_only=not required,
+                     allow_devices=args.allow_device, object_dir=object_dir,
+                     max_object_bytes=int(args.max_object_mib * 2**20),
+                     object_memory_bytes=int(args.object_memory_mib * 2**20),
+                     max_running=args.max_scans, max_queued=args.max_queued, **options)
     level = logging.getLogger("capture").level
     logging.getLogger("uvicorn").setLevel(level)
     logging.getLogger("uvicorn.access").setLevel(level if args.access_log else logging.WARNING)

@@ -7,6 +7,7 @@ import hmac
 import ipaddress
 import logging
 import os
+import re
 import secrets
 import stat
 from pathlib import Path
@@ -82,12 +83,21 @@ class BearerAuth:
             )
 
 
+_HOST_HEADER = re.compile(
+    r"^(?:\[(?P<v6>[0-9A-Fa-f:.]+)\]|(?P<name>[A-Za-z0-9.\-]+))(?::(?P<port>\d{1,5}))?$")
+
+
 def host_of(header: str) -> str:
-    """The host part of a ``Host`` header: ``[::1]:8765`` → ``::1``, ``a:80`` → ``a``."""
+    """The host part of a ``Host`` header: ``[::1]:8765`` → ``::1``, ``a:80`` → ``a``; ""
+    for anything that is not a plain host and port (``127.0.0.1:80@evil.example``)."""
     header = header.strip()
-    if header.startswith("["):
-        return header[1:].partition("]")[0]
-    return header.rpartition(":")[0] if header.count(":") == 1 else header
+    match = _HOST_HEADER.match(header)
+    if match:
+        return match.group("v6") or match.group("name")
+    try:  # a bare IPv6 address (``::1``)
+        return str(ipaddress.IPv6Address(header))
+    except ValueError:
+        return ""
 
 
 class LoopbackHostGuard:

@@ -27,3 +27,9 @@ class InvalidRequest(DaemonError, ValueError):
 
 class OutsideScanFolder(DaemonError, PermissionError):
     """A file name that would lead out of the scan's folder (answered as 404)."""
+
+
+class TooBusy(DaemonError, RuntimeError):
+    """The daemon runs and queues as many scans as it may: try again later (429)."""
+
+    retry_after_s = 10

@@ -7,20 +7,21 @@ child process instead and offers the same interface (start, pause, resume, cance
 state, reason, subscribe, documents): documents come back over a pipe as dicts, commands go
 the other way. Children fork from a fork server that has already imported the capture stack,
 so a scan starts in a fraction of a second; they run at a lower CPU priority (nice 10) than
-the daemon, whose answers then wait for no scan. A child dies with the daemon (through the fork
-server and PR_SET_PDEATHSIG on Linux; a closed command pipe cancels it elsewhere), as an
-in-process runner would: its recording keeps every completed view.
+the daemon, whose answers then wait for no scan. A child opens the devices and loads the
+simulated camera's object itself, under a memory budget (``object_memory_bytes`` more than it
+used before), so a slow device or a huge mesh costs the daemon nothing. Its files are private
+(umask 077). A child outlives no daemon for long: a closed command pipe (the daemon was killed)
+cancels its scan with that reason, and it exits on its own if the scan does not end soon after;
+its recording keeps every completed view.
 """
 
 from __future__ import annotations
 
-import ctypes
+import contextlib
 import dataclasses
 import logging
 import multiprocessing
 import os
-import signal
-import sys
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -35,6 +36,12 @@ TERMINAL = ("done", "failed", "interrupted")
 #: scans are batch work: on a busy machine the HTTP front (status, events) is served first
 SCAN_NICENESS = 10
 _PRELOAD = ["capture.daemon.isolation", "capture.runner", "capture.replay"]
+DEFAULT_OBJECT_MEMORY_BYTES = 2 << 30
+#: how long an orphaned child (its daemon killed) may take to stop its scan before it exits
+ORPHAN_GRACE_S = 60.0
+ORPHANED = ("the daemon went away (killed or crashed) while the scan ran: stopped after the "
+            "current step, every completed view is in the recording; resume it from the "
+            "restarted daemon")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,6 +58,7 @@ class RunSpec:
     replay: bool = False
     log_level: int = logging.WARNING
     cluster: str | None = None  # Dask scheduler for the fits (`capture.executors`)
+    object_memory_bytes: int | None = None
 
 
 def build_runner(spec: RunSpec):
@@ -104,6 +112,7 @@ class ProcessRunner:
         self._ended = threading.Event()
         self._process = None
         self._commands = None
+        self._cancelled_at_start = False
 
     @property
     def state(self) -> str:
@@ -128,6 +137,8 @@ class ProcessRunner:
         self._process = context.Process(target=_child, args=(documents_in, commands_out,
                                                              self.spec), name="scan")
         self._process.start()
+        if self._cancelled_at_start:  # cancelled while the process was being made
+            self._process.terminate()
         documents_in.close()
         commands_out.close()
         threading.Thread(target=self._read, args=(documents,), name="scan-reader",
@@ -150,8 +161,17 @@ class ProcessRunner:
         self._send("resume")
 
     def cancel(self) -> None:
-        if self._state not in TERMINAL:
-            self._send("cancel")
+        """Stop after the current step; while the child still opens the devices (a device may
+        take its whole timeout to answer), stop the child at once: nothing is recorded yet."""
+        if self._state in TERMINAL:
+            return
+        if self._state == "idle" and not self._ready.is_set():
+            self._cancelled_at_start = True
+            if self._process is not None and self._process.pid is not None:
+                with contextlib.suppress(OSError, ValueError):
+                    self._process.terminate()
+            return
+        self._send("cancel")
 
     def wait(self, timeout: float | None = None) -> str:
         self._ended.wait(timeout)
@@ -183,7 +203,10 @@ class ProcessRunner:
             elif kind == "end":
                 self._state, self.reason, ended = message[1], message[2], True
         self._process.join()
-        if not ended:
+        if not ended and self._cancelled_at_start:
+            self._state = "interrupted"
+            self.reason = "cancelled by the user while the devices were opening"
+        elif not ended:
             code = self._process.exitcode
             self._state = "failed"
             self.reason = f"the scan process died (exit code {code})"
@@ -203,16 +226,98 @@ class ProcessRunner:
                 log.warning("subscriber %r failed on %s: %s", callback, doc.get("kind"), exc)
 
 
-def _die_with_parent() -> None:
-    if sys.platform.startswith("linux"):
-        PR_SET_PDEATHSIG = 1
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL))
+def _data_used() -> int | None:
+    """Bytes of this process's data segment (Linux ``VmData``), or None where unknown."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmData:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError):
+        return None
+    return None
+
+
+@contextlib.contextmanager
+def memory_budget(extra_bytes: int | None):
+    """Allow this process ``extra_bytes`` more data than it uses now (RLIMIT_DATA), then
+    restore the limit: an allocation past it raises MemoryError instead of swapping the
+    station to a halt. No-op where the limit or the current use is unknown."""
+    used = _data_used() if extra_bytes else None
+    try:
+        import resource
+    except ImportError:  # not POSIX
+        used = None
+    if used is None:
+        yield
+        return
+    soft, hard = resource.getrlimit(resource.RLIMIT_DATA)
+    limit = used + extra_bytes
+    if hard != resource.RLIM_INFINITY:
+        limit = min(limit, hard)
+    resource.setrlimit(resource.RLIMIT_DATA, (limit, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_DATA, (soft, hard))
+
+
+def _out_of_memory(exc: BaseException) -> bool:
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, MemoryError):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+SCAN_LOCK = ".scan.lock"
+
+
+def _hold_folder(folder: Path):
+    """Lock ``folder`` for this process's life (released by the kernel when it ends), so that a
+    restarted daemon does not resume a scan whose orphaned process still writes it."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX
+        return None
+    folder.mkdir(parents=True, exist_ok=True)
+    handle = open(folder / SCAN_LOCK, "a")  # noqa: SIM115 (held until the process ends)
+    fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    return handle
+
+
+def folder_in_use(folder: Path) -> bool:
+    """Whether a scan process (of this daemon or of a killed one) still holds ``folder``."""
+    try:
+        import fcntl
+    except ImportError:
+        return False
+    try:
+        with open(Path(folder) / SCAN_LOCK, "a") as handle:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return True
+            fcntl.flock(handle, fcntl.LOCK_UN)
+    except OSError:  # no folder (yet): nobody holds it
+        return False
+    return False
 
 
 def _child(documents, commands, spec: RunSpec) -> None:
     """The child process: run the scan, forward its documents, obey commands."""
-    _die_with_parent()
+    os.umask(0o077)
     os.nice(SCAN_NICENESS)
+    try:
+        held = _hold_folder(spec.out_dir)  # noqa: F841 (kept open for the process's life)
+    except BlockingIOError:
+        documents.send(("end", "failed", "the scan's folder is in use by another scan process "
+                        "(of a daemon that was killed): try again once it stopped"))
+        return
+    except OSError:  # the folder cannot be made: the runner's own check says why
+        held = None  # noqa: F841
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     for name in ("capture", "reconstruct", "drivers", "sim"):
         logging.getLogger(name).setLevel(spec.log_level)
@@ -232,13 +337,20 @@ def _child(documents, commands, spec: RunSpec) -> None:
         data = as_dict(doc)
         if data.get("kind") == "mesh":
             write_live_mesh(getattr(runner.engine, "mesh", None), spec.out_dir)
-        send(("doc", data, runner.state))
+        with contextlib.suppress(OSError, ValueError):  # the daemon is gone: the scan stops
+            send(("doc", data, runner.state))
 
     runner.subscribe(forward)
     try:
-        runner.start()
+        with memory_budget(spec.object_memory_bytes if spec.object else None):
+            runner.start()  # opens the devices and loads the object
     except Exception as exc:
-        send(("end", runner.state, runner.reason or str(exc)))
+        reason = runner.reason or str(exc)
+        if _out_of_memory(exc):
+            budget = (spec.object_memory_bytes or 0) / 2**20
+            reason = (f"out of memory opening the station: the object needs more than the "
+                      f"scan's budget of {budget:g} MiB ({reason})")
+        send(("end", runner.state, reason))
         return
     send(("started", runner.state))
 
@@ -247,7 +359,11 @@ def _child(documents, commands, spec: RunSpec) -> None:
             try:
                 command = commands.recv()
             except (EOFError, OSError):  # the daemon is gone: stop, keep what is recorded
-                runner.cancel()
+                runner.cancel(ORPHANED)
+                if runner.wait(ORPHAN_GRACE_S) not in TERMINAL:
+                    log.error("scan still running %g s after its daemon went away: exiting",
+                              ORPHAN_GRACE_S)
+                    os._exit(1)
                 return
             try:
                 getattr(runner, command)()
@@ -259,4 +375,5 @@ def _child(documents, commands, spec: RunSpec) -> None:
     runner.wait()
     if runner.executor is not None:
         runner.executor.shutdown(wait=False, cancel_futures=True)
-    send(("end", runner.state, runner.reason))
+    with contextlib.suppress(OSError, ValueError):  # no daemon left to tell
+        send(("end", runner.state, runner.reason))

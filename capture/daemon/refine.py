@@ -14,7 +14,12 @@ import os
 import threading
 from pathlib import Path
 
-from .errors import Conflict
+from .errors import Conflict, InvalidRequest
+
+
+class RefineFailed(InvalidRequest):
+    """The new λ / depth give no mesh (e.g. the boundary spline collapses): 422, and the
+    scan keeps its previous mesh."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,8 +41,10 @@ class MeshRefiner:
 
     def remesh(self, scan_id: str, folder: Path, lam: float | None,
                depth: int | None) -> RefineResult:
-        """Re-mesh and write the mesh; `Conflict` when the scan has no saved reconstruction."""
+        """Re-mesh and write the mesh; `Conflict` when the scan has no saved reconstruction,
+        `RefineFailed` when the new parameters give no mesh."""
         from capture.live.engine import EngineError, IncrementalEngine
+        from reconstruct.errors import ReconstructionError
 
         with self._lock:
             scan_lock = self._locks.setdefault(scan_id, threading.Lock())
@@ -56,7 +63,12 @@ class MeshRefiner:
                     self._engines[scan_id] = engine
                     while len(self._engines) > self.cache_size:
                         self._engines.popitem(last=False)
-            engine.remesh(lam, depth)
+            try:
+                engine.remesh(lam, depth)  # on failure the engine keeps its last mesh
+            except ReconstructionError as exc:
+                cause = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                raise RefineFailed(f"refine with lam={lam}, depth={depth} failed: {cause}; "
+                                   "the previous mesh is kept") from exc
             figures = dict(engine.figures)
             name = f"mesh-lam{figures['lam']:g}-depth{figures['depth']}.ply"
             partial = folder / f".{name}.part"

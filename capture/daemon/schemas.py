@@ -17,6 +17,8 @@ from capture.plan import ScanPlan
 from capture.station import is_simulated, station_urls
 from drivers.registry import backend_class
 
+from .policy import DevicePolicy
+
 #: scan ids the daemon makes: 16 lowercase hex digits (also what a path may contain)
 SCAN_ID_PATTERN = r"^[0-9a-f]{16}$"
 MESH_FORMATS = ("ply", "obj", "stl", "glb")
@@ -26,7 +28,7 @@ MAX_URL = 512
 class ScanRequest(BaseModel):
     """POST /api/v1/scans: a plan (`capture.plan.ScanPlan` as JSON; missing fields take their
     defaults) and device URLs; none → the simulated station, whose camera shows ``object``
-    (a built-in name or a mesh file on the station)."""
+    (a built-in name, or a mesh file in the operator's ``--object-dir``)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -50,21 +52,24 @@ class RefineRequest(BaseModel):
 MeshFormat = Literal["ply", "obj", "stl", "glb"]
 
 
-def check_scan_request(request: ScanRequest) -> ScanPlan:
-    """The validated plan; raises ValueError (one line) for anything that cannot run.
+def check_scan_request(request: ScanRequest, policy: DevicePolicy) -> tuple[ScanPlan, str | None]:
+    """(the validated plan, the object to load: a built-in name or a checked file path);
+    raises ValueError (one line) for anything that cannot run or that the operator does not
+    allow (`capture.daemon.policy`).
 
-    Device URLs must name a known backend with valid parameters (the device is built, not
-    opened); ``object`` needs the simulated camera and must load.
+    Device URLs must name a known backend with valid parameters (the device is built, never
+    opened here: that happens in the scan's process); an object file is checked by size and
+    type, and parsed only by the scan's process.
     """
     plan = ScanPlan.from_dict(request.plan)
     for kind, url in (("camera", request.camera_url), ("turntable", request.turntable_url)):
         if url is not None:
             backend_class(kind, url).from_url(url)
-    if request.object is not None:
-        camera_url, _ = station_urls(request.camera_url, request.turntable_url, request.object)
-        camera = backend_class("camera", camera_url).from_url(camera_url)
-        camera.true_object_mesh()  # loads the object: a bad name or file fails here
-    return plan
+            policy.check_url(kind, url)
+    obj = policy.resolve_object(request.object)
+    if request.object is not None:  # a real camera has no object to show
+        station_urls(request.camera_url, request.turntable_url, request.object)
+    return plan, obj
 
 
 def device_keys(camera_url: str | None, turntable_url: str | None) -> list[str]:

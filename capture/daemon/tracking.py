@@ -42,16 +42,25 @@ def write_live_mesh(mesh, folder: Path) -> bool:
 
 
 class ScanTracker:
-    """A runner subscriber for scan ``scan_id`` (``replay``: a re-processing run)."""
+    """A runner subscriber for scan ``scan_id`` (``replay``: a re-processing run). ``clean``
+    rewrites the reasons and messages that clients see (no server paths); ``on_start`` is
+    called on the runner's start document, before it is published (the scan now runs)."""
 
     def __init__(self, scan_id: str, runner, folder: Path, store: JobStore,
-                 channel: EventChannel, replay: bool = False):
+                 channel: EventChannel, replay: bool = False, clean=None, on_start=None):
         self.scan_id, self.runner, self.folder = scan_id, runner, Path(folder)
         self.store, self.channel, self.replay = store, channel, replay
+        self.clean = clean or (lambda text: text)
+        self.on_start = on_start
 
     def __call__(self, doc) -> None:
         data = as_dict(doc)
+        for key in ("reason", "message"):
+            if isinstance(data.get(key), str):
+                data[key] = self.clean(data[key])
         kind = data.get("kind")
+        if kind == "start" and self.on_start is not None:
+            self.on_start()
         if kind == "mesh":
             self._mesh_updated(data.get("figures") or {})
         elif kind == "progress":

@@ -8,7 +8,7 @@ import {
 
 const $ = (id) => document.getElementById(id);
 const TOKEN_KEY = "scanstation-token";
-const ACTIVE = new Set(["idle", "running", "paused", "stopping", "processing"]);
+const ACTIVE = new Set(["queued", "starting", "idle", "running", "paused", "stopping", "processing"]);
 const ENDED = new Set(["done", "failed", "interrupted"]);
 const sleep = (ms) => new Promise((resolve) => setTimeout(resolve, ms));
 // "quick preview": one small hidden layer per patch, few epochs, three sectors (seconds, not
@@ -152,7 +152,7 @@ function showScan(scan) {
   const can = {
     pause: scan.state === "running",
     resume: scan.state === "paused" || scan.state === "interrupted",
-    cancel: ["idle", "running", "paused"].includes(scan.state),
+    cancel: ["queued", "starting", "idle", "running", "paused"].includes(scan.state),
     reprocess: ENDED.has(scan.state) && files.recording_segments > 0,
     delete: !ACTIVE.has(scan.state),
   };

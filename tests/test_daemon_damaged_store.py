@@ -10,8 +10,8 @@ import subprocess
 import sys
 
 import pytest
+from daemon_helpers import capture_plan, station_urls, wait_for_state, wait_until
 from fastapi.testclient import TestClient
-from test_daemon_helpers import capture_plan, station_urls, wait_for_state, wait_until
 
 from capture.daemon.app import DATABASE, create_app
 from capture.daemon.store import JobStore, StoreError

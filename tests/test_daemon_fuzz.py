@@ -19,10 +19,10 @@ import httpx
 import pytest
 
 schemathesis = pytest.importorskip("schemathesis")
+from daemon_helpers import capture_plan, station_urls, wait_for_state  # noqa: E402
 from fastapi.testclient import TestClient  # noqa: E402
 from hypothesis import HealthCheck, assume, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
-from test_daemon_helpers import capture_plan, station_urls, wait_for_state  # noqa: E402
 
 from capture.daemon.app import create_app  # noqa: E402
 

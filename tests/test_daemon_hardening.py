@@ -9,9 +9,9 @@ import socket
 import stat
 
 import pytest
+from daemon_helpers import LiveServer, capture_plan, station_urls, wait_for_state
+from daemon_helpers import one_line_detail as _detail
 from fastapi.testclient import TestClient
-from test_daemon_helpers import LiveServer, capture_plan, station_urls, wait_for_state
-from test_daemon_helpers import one_line_detail as _detail
 
 from capture.daemon.app import create_app
 

@@ -10,8 +10,7 @@ import socket
 import threading
 
 import pytest
-from fastapi.testclient import TestClient
-from test_daemon_helpers import (
+from daemon_helpers import (
     GatedRunner,
     LiveServer,
     capture_plan,
@@ -19,7 +18,8 @@ from test_daemon_helpers import (
     wait_for_state,
     wait_until,
 )
-from test_daemon_helpers import one_line_detail as _detail
+from daemon_helpers import one_line_detail as _detail
+from fastapi.testclient import TestClient
 
 from capture.daemon.app import create_app
 

@@ -58,7 +58,8 @@ def mug() -> trimesh.Trimesh:
     outer = _moved(trimesh.creation.cylinder(40, 95, sections=128), (0, 0, 47.5))
     inner = _moved(trimesh.creation.cylinder(36, 95, sections=128), (0, 0, 47.5 + 6))
     handle = trimesh.creation.torus(24, 5, major_sections=96, minor_sections=24)
-    handle = _moved(handle, (42, 0, 50), trimesh.transformations.rotation_matrix(np.pi / 2, (1, 0, 0)))
+    upright = trimesh.transformations.rotation_matrix(np.pi / 2, (1, 0, 0))
+    handle = _moved(handle, (42, 0, 50), upright)
     cut = _moved(trimesh.creation.cylinder(38, 95, sections=128), (0, 0, 47.5 + 6))
     return _union(_difference(outer, inner), _difference(handle, cut))
 
@@ -108,3 +109,29 @@ def sample_cloud(mesh: trimesh.Trimesh, n_points: int, noise: float, random_stat
     points, _ = trimesh.sample.sample_surface(mesh, n_points, seed=rng.integers(2**31))
     diagonal = float(np.linalg.norm(mesh.extents))
     return points + rng.normal(0.0, noise * diagonal, points.shape)
+
+
+def relief(size: float = 140.0, cells: int = 280, holes: int = 3, seed: int = 3) -> trimesh.Trimesh:
+    """An open range scan: a height field with detail at several scales (wavelengths from 70
+    to 7 mm) and ``holes`` round holes 12–20 mm wide, as a face or relief scan has (not closed)."""
+    rng = np.random.default_rng(seed)
+    u = np.linspace(-size / 2, size / 2, cells + 1)
+    x, y = np.meshgrid(u, u, indexing="ij")
+    z = np.zeros_like(x)
+    for wavelength, amplitude in ((70, 9.0), (30, 3.0), (14, 1.2), (7, 0.5)):
+        for _ in range(3):
+            k = 2 * np.pi / wavelength * rng.normal(size=2) / np.sqrt(2)
+            z += amplitude / 3 * np.sin(k[0] * x + k[1] * y + rng.uniform(0, 2 * np.pi))
+    vertices = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+    i, j = np.meshgrid(np.arange(cells), np.arange(cells), indexing="ij")
+    a = (i * (cells + 1) + j).ravel()
+    faces = np.concatenate([np.column_stack([a, a + cells + 1, a + 1]),
+                            np.column_stack([a + 1, a + cells + 1, a + cells + 2])])
+    centres = vertices[faces].mean(axis=1)[:, :2]
+    keep = np.ones(len(faces), bool)
+    for _ in range(holes):
+        centre = rng.uniform(-size / 3, size / 3, 2)
+        keep &= np.linalg.norm(centres - centre, axis=1) > rng.uniform(6, 10)
+    mesh = trimesh.Trimesh(vertices, faces[keep])
+    mesh.remove_unreferenced_vertices()
+    return mesh

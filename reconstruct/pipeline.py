@@ -155,7 +155,8 @@ class SurfaceReconstructor(BaseEstimator):
             warnings.warn(
                 f"the mesh leaves {100 * self.unexplained_:.0f} % of the points farther than "
                 "their noise allows: the cloud is not one disc-like surface (closed, curled onto "
-                "itself or in layers), which one chart of the paper's method cannot mesh",
+                "itself or in layers), which one chart of the paper's method cannot mesh, or it "
+                "has more detail than the network holds",
                 ReconstructionWarning, stacklevel=3,
             )
 

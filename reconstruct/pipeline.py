@@ -15,6 +15,7 @@ import json
 import logging
 import os
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +26,8 @@ from sklearn.base import BaseEstimator, clone
 from .alignment import align_to
 from .boundary import MultiDepthBoundary, PCABoundary
 from .embedding import SurfaceEmbedding
-from .errors import InvalidInputError, NotFittedError, WarmStartRefused
+from .errors import InvalidInputError, NotFittedError, ReconstructionWarning, WarmStartRefused
+from .faithfulness import UNEXPLAINED_LIMIT, neighbour_preservation, unexplained_fraction
 from .io import write_bytes_atomic
 from .meshing import default_spacing, mesh_inside, sample_ring
 from .mlp import AdaptiveMLP
@@ -83,7 +85,10 @@ class SurfaceReconstructor(BaseEstimator):
     Fitted attributes: ``embedding_`` (m, 2), ``points_`` (m, 3) the points it was fitted to,
     ``mlp_`` (`AdaptiveMLP`; not after `load`), ``embedding_method_``, ``n_neighbors_``,
     ``surface_map_`` (OnnxSurfaceMap), ``hidden_layers_``, ``mesh_`` (trimesh.Trimesh),
-    ``boundary_points_`` (k, 2), ``spline_`` (BoundarySpline), ``vertices_2d_`` (v, 2).
+    ``boundary_points_`` (k, 2), ``spline_`` (BoundarySpline), ``vertices_2d_`` (v, 2),
+    ``unexplained_`` share of the points the mesh leaves farther than their noise allows and
+    ``neighbour_preservation_`` of the embedding (`reconstruct.faithfulness`; a
+    `ReconstructionWarning` when the share is over 5 %).
     """
 
     def __init__(
@@ -160,6 +165,7 @@ class SurfaceReconstructor(BaseEstimator):
         self.hidden_layers_ = tuple(mlp.hidden_layers_)
         self._boundary_cache = {}
         self.remesh()
+        self._check_faithful()
         log.info(
             "reconstructed %d points in %.1f s: %s, K=%d, layers %s, %d vertices, %d faces",
             len(points),
@@ -188,6 +194,20 @@ class SurfaceReconstructor(BaseEstimator):
             return float(self.warm_tolerance)
         distance, _ = cKDTree(warm_start.points_).query(warm_start.points_, k=2)
         return float(np.median(distance[:, 1]))
+
+    def _check_faithful(self) -> None:
+        """Measure how faithful the one-chart mesh is; warn when it cannot be (closed, curled
+        onto itself, layered): a wrong mesh is said, never returned silently."""
+        self.neighbour_preservation_ = neighbour_preservation(self.points_, self.embedding_)
+        self.unexplained_ = unexplained_fraction(self.mesh_, self.points_)
+        if self.unexplained_ > UNEXPLAINED_LIMIT:
+            warnings.warn(
+                f"the mesh leaves {100 * self.unexplained_:.0f} % of the points farther than "
+                "their noise allows: the cloud is not one disc-like surface (closed, curled onto "
+                "itself or in layers), which one chart of the paper's method cannot mesh, or it "
+                "has more detail than the network holds",
+                ReconstructionWarning, stacklevel=3,
+            )
 
     def remesh(self, **params) -> trimesh.Trimesh:
         """Re-mesh with new ``lam``, ``depth``, ``n_corners``, ``boundary`` or ``grid_spacing``

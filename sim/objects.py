@@ -11,6 +11,8 @@ import trimesh
 
 from drivers.errors import DeviceError
 
+from .awkward_objects import AWKWARD
+
 log = logging.getLogger(__name__)
 
 
@@ -69,7 +71,7 @@ def box(subdivisions: int = 6) -> trimesh.Trimesh:
     return mesh
 
 
-BUILT_IN = {"vase": vase, "bust": bust, "box": box}
+BUILT_IN = {"vase": vase, "bust": bust, "box": box, **AWKWARD}
 DEFAULT_OBJECT = "vase"
 
 
@@ -85,7 +87,8 @@ def stand_on_plate(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
 
 
 def load_object(name_or_path: str | Path | None = None) -> trimesh.Trimesh:
-    """A built-in object by name (``vase``, ``bust``, ``box``) or any mesh file trimesh reads
+    """A built-in object by name (``vase``, ``bust``, ``box`` or one of `AWKWARD`: ``mug``,
+    ``torus``, ``figurine``, ``hook``, ``sheets``) or any mesh file trimesh reads
     (units: mm), stood on the plate. Raises `ObjectError` with a one-line cause."""
     name = str(name_or_path or DEFAULT_OBJECT)
     if name in BUILT_IN:

@@ -1,0 +1,67 @@
+"""A one-chart mesh that cannot hold the cloud is measured and said (reconstruct.faithfulness)."""
+
+import warnings
+
+import numpy as np
+import pytest
+import trimesh
+
+from reconstruct.errors import ReconstructionWarning
+from reconstruct.faithfulness import local_noise, neighbour_preservation, unexplained_fraction
+from reconstruct.pipeline import SurfaceReconstructor
+
+
+def noisy_sphere(n, sigma=0.01, seed=0):
+    rng = np.random.default_rng(seed)
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    return direction * (1 + rng.normal(0, sigma, size=(n, 1)))
+
+
+def flat_square(n=2000, sigma=0.01, seed=0):
+    rng = np.random.default_rng(seed)
+    return np.column_stack([rng.uniform(-1, 1, (n, 2)), rng.normal(0, sigma, n)])
+
+
+def square_mesh(z=0.0):
+    return trimesh.Trimesh([[-1, -1, z], [1, -1, z], [1, 1, z], [-1, 1, z]], [[0, 1, 2], [0, 2, 3]])
+
+
+def test_local_noise_measures_the_scatter_about_the_plane():
+    noise, spacing = local_noise(flat_square(sigma=0.01))
+    assert 0.005 < np.median(noise) < 0.012
+    assert 0.02 < np.median(spacing) < 0.1
+
+
+def test_a_mesh_through_the_points_explains_them():
+    assert unexplained_fraction(square_mesh(), flat_square()) == 0.0
+
+
+def test_a_mesh_away_from_the_points_is_measured():
+    assert unexplained_fraction(square_mesh(z=0.5), flat_square()) == 1.0
+    # A disc through a sphere's middle (what one chart makes of a closed cloud) leaves most out.
+    assert unexplained_fraction(square_mesh(), noisy_sphere(2000)) > 0.8
+
+
+def test_neighbour_preservation_of_an_isometry_and_a_fold():
+    points = flat_square(sigma=0.0)
+    assert neighbour_preservation(points, points[:, :2]) == 1.0
+    sphere = noisy_sphere(2000, sigma=0.0)
+    # Projecting the sphere flat lays its two halves onto one another.
+    assert neighbour_preservation(sphere, sphere[:, :2]) < 0.7
+    with pytest.raises(ValueError, match="embedded points"):
+        neighbour_preservation(points, points[:10, :2])
+
+
+def test_a_closed_cloud_meshed_as_one_chart_is_reported():
+    with pytest.warns(ReconstructionWarning, match="not one disc-like surface"):
+        model = SurfaceReconstructor(max_layers=1, max_neurons=6).fit(noisy_sphere(600))
+    assert model.unexplained_ > 0.3
+
+
+def test_a_disc_like_cloud_is_not_reported():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ReconstructionWarning)
+        model = SurfaceReconstructor(max_layers=1, max_neurons=6).fit(flat_square(900))
+    assert model.unexplained_ == 0.0
+    assert model.neighbour_preservation_ > 0.7

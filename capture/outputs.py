@@ -1,9 +1,10 @@
 """A scan's output folder: checked before the scan moves, written atomically at its end.
 
 Files: ``recording.mcap`` (and later segments; `capture.recording`), ``mesh.ply`` (the final
-mesh), ``engine/`` (the re-meshable fits, `capture.live.engine.remesh`), ``scan.json`` (plan,
-calibration, station, state and reason, timings, mesh figures, quality against the simulated
-object's true surface when there is one; written by `capture.report.ScanReport`).
+mesh), ``cloud.ply`` (the merged, calibrated points it was fitted to), ``engine/`` (the
+re-meshable fits, `capture.live.engine.remesh`), ``scan.json`` (plan, calibration, station,
+state and reason, timings, mesh figures, quality against the simulated object's true surface
+when there is one; written by `capture.report.ScanReport`).
 """
 
 from __future__ import annotations
@@ -63,6 +64,15 @@ class ScanOutputs:
     def write_mesh(self, mesh, name: str = "mesh.ply") -> Path:
         path = write_bytes_atomic(self.directory / name, mesh.export(file_type="ply"))
         self.files["mesh"] = str(path)
+        return path
+
+    def write_cloud(self, points, name: str = "cloud.ply") -> Path:
+        """The merged, calibrated cloud (m, 3) mm the mesh was fitted to, for other tools."""
+        import trimesh
+
+        data = trimesh.PointCloud(points).export(file_type="ply")
+        path = write_bytes_atomic(self.directory / name, data)
+        self.files["cloud"] = str(path)
         return path
 
     def write_engine(self, engine) -> Path:

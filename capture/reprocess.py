@@ -205,10 +205,6 @@ def _replay(segments, overrides: dict, src: Path, out: Path, named) -> dict:
     if state != "done":
         raise ReprocessError(named(f"replay {state}: {runner.reason}"))
     engine = runner.engine
-    import trimesh
-
-    write_bytes_atomic(out / "cloud.ply",
-                       trimesh.PointCloud(engine.fitted_points).export(file_type="ply"))
     files = {}
     for path in sorted(out.rglob("*")):
         if path.is_file() and not path.name.startswith("."):

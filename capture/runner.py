@@ -341,6 +341,7 @@ class ScanRunner(RunLifecycle):
             raise CaptureError("no mesh: too few points in the working volume (is the object "
                                "inside it?)")
         self.outputs.write_mesh(mesh)
+        self.outputs.write_cloud(self.engine.fitted_points)
         self.outputs.write_engine(self.engine)
 
     def _end(self, event: str, reason: str) -> None:

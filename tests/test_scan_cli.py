@@ -37,8 +37,8 @@ def scanned(tmp_path_factory, fast_params):
 def test_scan_writes_recording_mesh_and_report(scanned, capsys):
     code, out = scanned
     assert code == 0
-    assert {p.name for p in out.iterdir()} >= {"recording.mcap", "mesh.ply", "scan.json",
-                                               "engine"}
+    assert {p.name for p in out.iterdir()} >= {"recording.mcap", "mesh.ply", "cloud.ply",
+                                               "scan.json", "engine"}
     report = json.loads((out / "scan.json").read_text())
     assert report["state"] == "done" and report["views_done"] == 6
     assert report["plan"]["angles"] == [0, 60, 120, 180, 240, 300]
@@ -50,6 +50,10 @@ def test_scan_writes_recording_mesh_and_report(scanned, capsys):
     assert report["mesh"]["final"] and report["mesh"]["faces"] > 1000
     mesh = trimesh.load(out / "mesh.ply", process=False)
     assert len(mesh.faces) == report["mesh"]["faces"]
+    # The merged, calibrated cloud the mesh was fitted to: on the mesh's object, in mm.
+    cloud = trimesh.load(out / "cloud.ply", process=False)
+    assert len(cloud.vertices) == report["mesh"]["points"]
+    assert np.abs(cloud.vertices.mean(axis=0) - mesh.vertices.mean(axis=0)).max() < 10.0
 
 
 def test_replay_command_reproduces_the_mesh(scanned, tmp_path, capsys):

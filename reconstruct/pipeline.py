@@ -69,7 +69,9 @@ class SurfaceReconstructor(BaseEstimator):
 
     Fitted attributes: ``embedding_`` (m, 2), ``points_`` (m, 3) the points it was fitted to,
     ``surface_map_`` (OnnxSurfaceMap), ``hidden_layers_``, ``mesh_`` (trimesh.Trimesh),
-    ``boundary_points_`` (k, 2), ``spline_`` (BoundarySpline), ``vertices_2d_`` (v, 2).
+    ``boundary_points_`` (k, 2), ``spline_`` (BoundarySpline), ``vertices_2d_`` (v, 2),
+    ``timings_`` (seconds per stage of the last fit / remesh: embedding, search, final fits,
+    export, boundary, mesh).
     """
 
     def __init__(
@@ -109,6 +111,7 @@ class SurfaceReconstructor(BaseEstimator):
         self._check_mesh_params()
         points = check_points(points)
         started = time.perf_counter()
+        self.timings_ = {}
         embedding = SurfaceEmbedding(
             method=self.embedding, n_neighbors=self.n_neighbors, random_state=self.random_state
         ).fit(points)
@@ -116,6 +119,7 @@ class SurfaceReconstructor(BaseEstimator):
         self.points_ = points[embedding.support_]
         self.embedding_method_ = embedding.method_
         self.n_neighbors_ = embedding.n_neighbors_
+        self.timings_["embedding"] = time.perf_counter() - started
         mlp = AdaptiveMLP(
             max_layers=self.max_layers,
             max_neurons=self.max_neurons,
@@ -126,6 +130,7 @@ class SurfaceReconstructor(BaseEstimator):
         self.mlp_ = mlp
         self.surface_map_ = mlp.surface_map_
         self.hidden_layers_ = tuple(mlp.hidden_layers_)
+        self.timings_.update(mlp.timings_)
         self._boundary_cache = {}
         self.remesh()
         log.info(
@@ -159,6 +164,7 @@ class SurfaceReconstructor(BaseEstimator):
         interpolants = self._boundary_points()
         spline = BoundarySpline(lam=self.lam, variance=self.variance).fit(interpolants)
         outline = self._extended(spline.polygon_)
+        bounded = time.perf_counter()
         spacing = self.grid_spacing or default_spacing(outline, len(self.embedding_))
         boundary_vertices = sample_ring(outline, spacing)
         vertices_2d, faces = mesh_inside(outline, boundary_vertices, spacing)
@@ -168,6 +174,8 @@ class SurfaceReconstructor(BaseEstimator):
         self.outline_ = outline
         self.vertices_2d_ = vertices_2d
         self.mesh_ = trimesh.Trimesh(vertices_3d, faces, process=False)
+        self.timings_ = {**getattr(self, "timings_", {}), "boundary": bounded - started,
+                         "mesh": time.perf_counter() - bounded}
         log.info(
             "meshed: λ=%g, depth %d, %d interpolants, %d vertices, %d faces (%.0f ms)",
             self.lam,

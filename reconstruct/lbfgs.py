@@ -22,7 +22,7 @@ import numpy as np
 
 from .networks import load_torch
 
-HISTORY = 10  # curvature pairs kept per net (scipy's default; 20 before: the same fits, half the recursion)
+HISTORY = 10  # curvature pairs kept per net (scipy's default; 20 before: same fits, less work)
 ARMIJO = 1e-4
 MAX_BACKTRACKS = 12
 
@@ -159,12 +159,13 @@ def _direction(g, S, Y, rho, gamma, count, head):
 
 
 def train_lbfgs(nets, activation: str, train, validation, max_epochs: int,
-                steps_per_epoch: int, patience: int,
+                steps_per_epoch: int, patience: int, plateau: float = 0.0,
                 dtype=np.float64) -> list[tuple[float, int]]:
     """Train the torch ``nets`` (same depth) in place, together, on ``train`` = (x, y) tensors;
     one epoch is ``steps_per_epoch`` iterations (curvature history kept across epochs). After
     each epoch every net's validation MSE is checked; a net stops after ``patience`` epochs
-    without improvement and is left at its best validation weights.
+    without improvement, or once an epoch lowers its training MSE by less than the fraction
+    ``plateau`` (converged), and is left at its best validation weights.
     Returns [(best validation MSE, epochs run)] per net."""
     model = BatchedMLP(nets, activation, dtype)
     x, y, xv, yv = (np.asarray(t, dtype=dtype) for t in (*train, *validation))
@@ -179,8 +180,12 @@ def train_lbfgs(nets, activation: str, train, validation, max_epochs: int,
     active = np.isfinite(f)
     pending = np.zeros(n_nets, dtype=bool)  # moved since the last validation check
 
+    epoch_start = f.copy()
+
     def end_of_epoch():
-        nonlocal best_val, stale, active, pending
+        nonlocal best_val, stale, active, pending, epoch_start
+        active &= ~pending | (f < (1.0 - plateau) * epoch_start)
+        epoch_start = np.where(pending, f, epoch_start)
         val = model.losses(theta, xv, yv)
         better = pending & np.isfinite(val) & (val < best_val)
         best_val = np.where(better, val, best_val)

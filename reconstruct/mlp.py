@@ -75,6 +75,9 @@ class AdaptiveMLP(BaseEstimator):
         Chamfer-L1 0.0096 → 0.0084, half torus σ 1 % F-score 0.960 → 0.970. 15 was no better
         on these and took the half torus end to end from 7.4 s to 13.4 s (bench/speed.py).
     neuron_patience : added neurons without a better weighted error before the layer is closed.
+    plateau : a searched configuration also stops once an epoch lowers its training MSE by
+        less than this fraction: it has converged, and more epochs would not change its rank
+        (the final fits and `fine_tune` run to their early stop).
     retry_factor : a configuration whose weighted error comes out over this factor above its
         layer's best so far landed in a poor local minimum (more neurons fit at least as well):
         it is trained once more from a new initialisation and the better run counts, so that
@@ -119,6 +122,7 @@ class AdaptiveMLP(BaseEstimator):
         patience: int = 6,
         final_patience: int = 10,
         neuron_patience: int = 3,
+        plateau: float = 1e-3,
         retry_factor: float = 2.0,
         near_best: float = 2.0,
         tol: float = 0.005,
@@ -139,6 +143,7 @@ class AdaptiveMLP(BaseEstimator):
         self.patience = patience
         self.final_patience = final_patience
         self.neuron_patience = neuron_patience
+        self.plateau = plateau
         self.retry_factor = retry_factor
         self.near_best = near_best
         self.tol = tol
@@ -168,6 +173,8 @@ class AdaptiveMLP(BaseEstimator):
                 raise InvalidInputError(f"{name} must be a whole number >= 1, got {value}")
         if not self.retry_factor > 1.0:
             raise InvalidInputError(f"retry_factor must be > 1, got {self.retry_factor}")
+        if not 0.0 <= self.plateau < 1.0:
+            raise InvalidInputError(f"plateau must be in [0, 1), got {self.plateau}")
         if not self.near_best >= 0.0:
             raise InvalidInputError(f"near_best must be >= 0, got {self.near_best}")
         if not 0.0 <= self.test_weight <= 1.0:
@@ -380,6 +387,7 @@ class AdaptiveMLP(BaseEstimator):
             nets, self.activation, tensors["train"], tensors["validation"],
             max_epochs=int(max_epochs or self.max_epochs),
             steps_per_epoch=int(self.steps_per_epoch), patience=int(patience or self.patience),
+            plateau=self.plateau if max_epochs is None else 0.0,
         )
         seconds = (time.perf_counter() - started) / len(nets)
         records = []

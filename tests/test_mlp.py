@@ -153,6 +153,7 @@ def test_inference_does_not_need_torch(fitted, tmp_path):
         ({"activation": "swish"}, "activation must be one of"),
         ({"max_neurons": 0}, "max_neurons must be a whole number >= 1"),
         ({"test_weight": 2}, r"test_weight must be in \[0, 1\]"),
+        ({"plateau": 1.0}, r"plateau must be in \[0, 1\)"),
     ],
 )
 def test_bad_parameters_are_named(params, message):
@@ -409,3 +410,18 @@ def test_batched_lbfgs_early_stops_at_the_best_validation_weights_and_is_determi
                 best, rel=1e-12)
     for a, b in zip(*runs, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_converged_net_stops_on_the_plateau_of_its_training_error():
+    """A 2-4-3 net converges on the known map long before 30 epochs (its training error then
+    falls by tiny fractions): ``plateau`` (the search's rule) stops it there, at nearly the
+    same validation error."""
+    from reconstruct.lbfgs import train_lbfgs
+
+    x, y = _known_function(200)
+    xv, yv = x[:40], y[:40]
+    ((plain_val, plain),) = train_lbfgs(_nets([(4,)]), "tanh", (x, y), (xv, yv), 30, 5, 30)
+    ((val, stopped),) = train_lbfgs(_nets([(4,)]), "tanh", (x, y), (xv, yv), 30, 5, 30,
+                                    plateau=0.01)
+    assert stopped < 0.7 * plain
+    assert val == pytest.approx(plain_val, rel=0.05)

@@ -1,19 +1,21 @@
-"""Full-batch L-BFGS for several small MLPs at once: one batched program per step.
+"""Full-batch L-BFGS for the adaptive search's small MLPs: numpy gradients, scipy's steps.
 
-The adaptive search trains dozens of tiny nets (a 2-10-14-3 net has 229 parameters) whose
-every step costs far more in Python and dispatch overhead than in arithmetic: a loss and
-gradient of one such net on 1,360 points took 0.3–0.9 ms in torch, nearly all of it overhead.
-Here B nets of the same depth are trained together: their weights are stacked and padded to the
-widest net of each layer (`BatchedMLP`; padding is held at zero by a mask, so every net computes
-exactly its own function), one batched forward/backward gives all B losses and gradients, and
-the L-BFGS steps (two-loop recursion, backtracking Armijo line search with a step length per
-net) run as numpy array operations over the B nets. Each net keeps its own curvature history,
-step length, early stopping and best weights: the nets do not interact, they only share the
-overhead.
+The search trains dozens of tiny nets (a 2-10-14-3 net has 229 parameters) whose every step
+cost more in dispatch than in arithmetic: a loss and gradient of one such net on 1,360 points
+took 0.3–0.9 ms through torch's autograd. `BatchedMLP` computes them in numpy with the
+back-propagation written out (a handful of matrix products per layer, no graph), for one net
+or for several of the same depth stacked and zero-padded (a mask holds the padding at zero,
+so each computes exactly its own function); scipy's compiled L-BFGS-B takes the steps
+(`train_lbfgs`, one net at a time, as before: the same optimizer, line search and options).
+
+A batched L-BFGS (B nets per step, numpy two-loop recursion, Armijo backtracking) was tried:
+the search ran about as fast (the steps are compute-bound once autograd is gone) and the
+meshes of bench/quality.py came out up to 2× worse in Chamfer-L1 (S-curve σ 0.5 %: a
+one-layer net chosen), so scipy's line search stays.
 
 Early stopping is on the validation MSE after every epoch of ``steps_per_epoch`` iterations;
-a net stops after ``patience`` epochs without improvement (or when no step lowers its training
-error) and is left at its best validation weights.
+a net stops after ``patience`` epochs without improvement and is left at its best validation
+weights.
 """
 
 from __future__ import annotations
@@ -22,9 +24,7 @@ import numpy as np
 
 from .networks import load_torch
 
-HISTORY = 10  # curvature pairs kept per net (scipy's default; 20 before: same fits, less work)
-ARMIJO = 1e-4
-MAX_BACKTRACKS = 12
+HISTORY = 20  # L-BFGS-B's maxcor: curvature pairs kept
 
 
 def activation_functions(name: str):
@@ -141,100 +141,75 @@ class BatchedMLP:
                         bias[b, 0, : layer.out_features].astype(np.float64)))
 
 
-def _direction(g, S, Y, rho, gamma, count, head):
-    """L-BFGS two-loop recursion for every net: (B, P) search directions -H g."""
-    m = S.shape[0]
-    order = [(head - 1 - k) % m for k in range(min(count, m))]  # newest first
-    q = g.copy()
-    alphas = []
-    for i in order:
-        a = rho[i] * np.einsum("bp,bp->b", S[i], q)
-        q -= a[:, None] * Y[i]
-        alphas.append(a)
-    r = gamma[:, None] * q
-    for i, a in zip(reversed(order), reversed(alphas), strict=True):
-        b = rho[i] * np.einsum("bp,bp->b", Y[i], r)
-        r += S[i] * (a - b)[:, None]
-    return -r
+def _train_one(model: BatchedMLP, x, y, xv, yv, max_epochs: int, steps_per_epoch: int,
+               patience: int) -> tuple[np.ndarray, float, int]:
+    """scipy's L-BFGS-B on the single net of ``model``: (best theta (1, P), its validation
+    MSE, epochs run)."""
+    from scipy.optimize import minimize
+
+    rows, mask = np.arange(1), model.mask[0] > 0
+    shape = model.theta.shape
+    full = model.theta.copy()
+
+    def evaluate(values):
+        full[0, mask] = values
+        loss, grad = model.losses_and_gradients(full, x, y, rows)
+        if not np.isfinite(loss[0]):
+            return np.inf, np.zeros_like(values)
+        return float(loss[0]), grad[0, mask]
+
+    def validation_mse(values) -> float:
+        full[0, mask] = values
+        return float(model.losses(full, xv, yv)[0])
+
+    start = model.theta[0, mask]
+    best = {"mse": validation_mse(start), "theta": start.copy(), "stale": 0, "epochs": 0,
+            "iterations": 0}
+
+    def end_of_epoch(values) -> bool:
+        """Score the epoch ending at ``values``; True when training should stop."""
+        best["epochs"] += 1
+        val = validation_mse(values)
+        if not np.isfinite(val):
+            return True
+        if val < best["mse"]:
+            best.update(mse=val, theta=values.copy(), stale=0)
+            return False
+        best["stale"] += 1
+        return best["stale"] >= patience
+
+    def end_of_iteration(intermediate_result):
+        best["iterations"] += 1
+        if best["iterations"] % steps_per_epoch == 0 and end_of_epoch(intermediate_result.x):
+            raise StopIteration
+
+    result = minimize(
+        evaluate, start, jac=True, method="L-BFGS-B", callback=end_of_iteration,
+        options={"maxiter": max_epochs * steps_per_epoch,
+                 "maxfun": max_epochs * steps_per_epoch * 5 // 4,
+                 "maxcor": HISTORY, "ftol": 1e-15, "gtol": 1e-10},
+    )
+    if best["iterations"] % steps_per_epoch:  # converged inside an epoch: score its end
+        end_of_epoch(result.x)
+    theta = np.zeros(shape)
+    theta[0, mask] = best["theta"]
+    return theta, best["mse"], best["epochs"]
 
 
 def train_lbfgs(nets, activation: str, train, validation, max_epochs: int,
-                steps_per_epoch: int, patience: int, plateau: float = 0.0,
-                dtype=np.float64) -> list[tuple[float, int]]:
-    """Train the torch ``nets`` (same depth) in place, together, on ``train`` = (x, y) tensors;
-    one epoch is ``steps_per_epoch`` iterations (curvature history kept across epochs). After
-    each epoch every net's validation MSE is checked; a net stops after ``patience`` epochs
-    without improvement, or once an epoch lowers its training MSE by less than the fraction
-    ``plateau`` (converged), and is left at its best validation weights.
+                steps_per_epoch: int, patience: int) -> list[tuple[float, int]]:
+    """Train each torch net of ``nets`` in place on ``train`` = (x, y) arrays or tensors by
+    full-batch L-BFGS (scipy's L-BFGS-B, numpy loss and gradient); one epoch is
+    ``steps_per_epoch`` iterations (curvature history kept across epochs). After each epoch
+    the validation MSE is checked; a net stops after ``patience`` epochs without improvement
+    and is left at its best validation weights.
     Returns [(best validation MSE, epochs run)] per net."""
-    model = BatchedMLP(nets, activation, dtype)
-    x, y, xv, yv = (np.asarray(t, dtype=dtype) for t in (*train, *validation))
-    theta = model.theta
-    n_nets, size = theta.shape
-    f, g = model.losses_and_gradients(theta, x, y, np.arange(n_nets))
-    best_val = model.losses(theta, xv, yv)
-    best_val[~np.isfinite(best_val)] = np.inf
-    best_theta = theta.copy()
-    stale = np.zeros(n_nets, dtype=int)
-    epochs = np.zeros(n_nets, dtype=int)
-    active = np.isfinite(f)
-    pending = np.zeros(n_nets, dtype=bool)  # moved since the last validation check
-
-    epoch_start = f.copy()
-
-    def end_of_epoch():
-        nonlocal best_val, stale, active, pending, epoch_start
-        active &= ~pending | (f < (1.0 - plateau) * epoch_start)
-        epoch_start = np.where(pending, f, epoch_start)
-        val = model.losses(theta, xv, yv)
-        better = pending & np.isfinite(val) & (val < best_val)
-        best_val = np.where(better, val, best_val)
-        best_theta[better] = theta[better]
-        epochs[:] += pending
-        stale = np.where(better, 0, stale + pending)
-        active &= (stale < patience) & np.isfinite(val)
-        pending = np.zeros(n_nets, dtype=bool)
-
-    S, Y = np.zeros((HISTORY, n_nets, size)), np.zeros((HISTORY, n_nets, size))
-    rho = np.zeros((HISTORY, n_nets))
-    gamma = 1.0 / np.maximum(np.abs(g).sum(1), 1e-12)  # first step: unit l1 length
-    count = head = 0
-    for iteration in range(1, int(max_epochs) * int(steps_per_epoch) + 1):
-        d = _direction(g, S, Y, rho, gamma, count, head)
-        slope = np.einsum("bp,bp->b", g, d)
-        downhill = slope < 0
-        d[~downhill] = -g[~downhill]  # not a descent direction: steepest descent
-        slope = np.where(downhill, slope, -np.einsum("bp,bp->b", g, g))
-        d[~active] = 0.0
-        step = np.ones(n_nets)
-        ok = ~active
-        trial, f_new, g_new = theta.copy(), f.copy(), g.copy()
-        for _ in range(MAX_BACKTRACKS):  # only the nets still looking for a step are computed
-            rows = np.flatnonzero(~ok)
-            trial[rows] = theta[rows] + step[rows, None] * d[rows]
-            f_new[rows], g_new[rows] = model.losses_and_gradients(trial[rows], x, y, rows)
-            ok = ~active | (np.isfinite(f_new) & (f_new <= f + ARMIJO * step * slope))
-            if ok.all():
-                break
-            step = np.where(ok, step, 0.25 * step)
-        moved = ok & active
-        active &= ok  # no step lowers the training error: converged (or stalled)
-        pending |= moved
-        s, yk = trial - theta, g_new - g
-        sy, yy = np.einsum("bp,bp->b", s, yk), np.einsum("bp,bp->b", yk, yk)
-        good = moved & (sy > 1e-10 * yy)
-        theta = np.where(moved[:, None], trial, theta)
-        f = np.where(moved, f_new, f)
-        g = np.where(moved[:, None], g_new, g)
-        S[head], Y[head] = np.where(good[:, None], s, 0.0), np.where(good[:, None], yk, 0.0)
-        rho[head] = np.where(good, 1.0 / np.where(good, sy, 1.0), 0.0)
-        gamma = np.where(good, sy / np.maximum(yy, 1e-300), gamma)
-        head, count = (head + 1) % HISTORY, count + 1
-        if iteration % steps_per_epoch == 0:
-            end_of_epoch()
-        if not active.any():
-            break
-    if pending.any():  # stopped inside an epoch: score where it ended
-        end_of_epoch()
-    model.write_back(best_theta)
-    return [(float(v), int(e)) for v, e in zip(best_val, epochs, strict=True)]
+    x, y, xv, yv = (np.asarray(t, dtype=np.float64) for t in (*train, *validation))
+    results = []
+    for net in nets:
+        model = BatchedMLP([net], activation)
+        theta, best, epochs = _train_one(model, x, y, xv, yv, int(max_epochs),
+                                         int(steps_per_epoch), int(patience))
+        model.write_back(theta)
+        results.append((best, epochs))
+    return results

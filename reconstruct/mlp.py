@@ -13,8 +13,8 @@ errors of the lowest, the one with the most parameters is returned. Measured on
 bench/quality.py (S-curve and half torus, seeds 1 and 2): the lowest error alone chose nets
 such as (6,) or (14,) that underfit, with meshes up to 2.6× the Chamfer distance.
 
-Training is full-batch L-BFGS (`lbfgs.py`: torch computes the loss and its gradient, scipy's
-compiled L-BFGS-B takes the steps) of the nets of `networks.py`. The chosen configuration is
+Training is full-batch L-BFGS (`lbfgs.py`: numpy computes the loss and its gradient by hand,
+scipy's compiled L-BFGS-B takes the steps) of the nets of `networks.py`. The chosen configuration is
 then trained to convergence from its searched weights and from a fresh start, and their mean
 is kept while the two agree (one MLP with the two side by side). That net is exported to ONNX
 with its normalisation inside; `predict` and meshing run on onnxruntime.
@@ -75,9 +75,6 @@ class AdaptiveMLP(BaseEstimator):
         Chamfer-L1 0.0096 → 0.0084, half torus σ 1 % F-score 0.960 → 0.970. 15 was no better
         on these and took the half torus end to end from 7.4 s to 13.4 s (bench/speed.py).
     neuron_patience : added neurons without a better weighted error before the layer is closed.
-    plateau : a searched configuration also stops once an epoch lowers its training MSE by
-        less than this fraction: it has converged, and more epochs would not change its rank
-        (the final fits and `fine_tune` run to their early stop).
     retry_factor : a configuration whose weighted error comes out over this factor above its
         layer's best so far landed in a poor local minimum (more neurons fit at least as well):
         it is trained once more from a new initialisation and the better run counts, so that
@@ -122,7 +119,6 @@ class AdaptiveMLP(BaseEstimator):
         patience: int = 6,
         final_patience: int = 10,
         neuron_patience: int = 3,
-        plateau: float = 1e-3,
         retry_factor: float = 2.0,
         near_best: float = 2.0,
         tol: float = 0.005,
@@ -143,7 +139,6 @@ class AdaptiveMLP(BaseEstimator):
         self.patience = patience
         self.final_patience = final_patience
         self.neuron_patience = neuron_patience
-        self.plateau = plateau
         self.retry_factor = retry_factor
         self.near_best = near_best
         self.tol = tol
@@ -173,8 +168,6 @@ class AdaptiveMLP(BaseEstimator):
                 raise InvalidInputError(f"{name} must be a whole number >= 1, got {value}")
         if not self.retry_factor > 1.0:
             raise InvalidInputError(f"retry_factor must be > 1, got {self.retry_factor}")
-        if not 0.0 <= self.plateau < 1.0:
-            raise InvalidInputError(f"plateau must be in [0, 1), got {self.plateau}")
         if not self.near_best >= 0.0:
             raise InvalidInputError(f"near_best must be >= 0, got {self.near_best}")
         if not 0.0 <= self.test_weight <= 1.0:
@@ -314,43 +307,31 @@ class AdaptiveMLP(BaseEstimator):
                       tried) -> tuple:
         """Grow the next hidden layer after the ``earlier`` widths neuron by neuron; append
         (weighted, n_parameters, layers, net) of every configuration to ``tried``; return the
-        layer's best (weighted, layers, net).
-
-        The configurations are trained in batches (`lbfgs.train_lbfgs`) of exactly the ones
-        the stopping rule will need whatever their errors: with ``stale`` of
-        ``neuron_patience`` added neurons already without improvement, the next
-        ``neuron_patience - stale`` are all trained before the layer can close, so they train
-        together and nothing is trained that the one-by-one search would not train."""
-        layer_best, stale, net, width = None, 0, None, 1
-        while width <= int(self.max_neurons):
-            count = 1 if self.growth == "net2net" else int(self.neuron_patience) - stale
-            widths = range(width, min(width + count, int(self.max_neurons) + 1))
-            width += len(widths)
-            nets = []
-            for w in widths:
-                net = self._start((*earlier, w), net, previous_layer_net, generator, n_in, n_out)
-                nets.append(net)
-            for net, record in zip(nets, self._train_many(nets, search), strict=True):
-                layers = record["layers"]
-                self._log_search(record)
-                if layer_best is not None and (
-                    record["weighted_mse"] > self.retry_factor * layer_best[0]
-                ):  # a poor local minimum: one more start
-                    retry = build(layers, self.activation, n_in, n_out, generator)
-                    (again,) = self._train_many([retry], search)
-                    again["retry"] = True
-                    self._log_search(again)
-                    if again["weighted_mse"] < record["weighted_mse"]:
-                        net, record = retry, again
-                score = record["weighted_mse"]
-                # kept as is: growing builds a new net, the search never trains this again
-                tried.append((score, n_parameters(layers, n_in, n_out), layers, net))
-                if layer_best is None or score < layer_best[0] * (1 - self.tol):
-                    layer_best, stale = (score, layers, net), 0
-                else:
-                    stale += 1
-                    if stale >= self.neuron_patience:
-                        return layer_best
+        layer's best (weighted, layers, net)."""
+        layer_best, stale, net = None, 0, None
+        for width in range(1, int(self.max_neurons) + 1):
+            layers = (*earlier, width)
+            net = self._start(layers, net, previous_layer_net, generator, n_in, n_out)
+            (record,) = self._train_many([net], search)
+            self._log_search(record)
+            if layer_best is not None and (
+                record["weighted_mse"] > self.retry_factor * layer_best[0]
+            ):  # a poor local minimum: one more start
+                retry = build(layers, self.activation, n_in, n_out, generator)
+                (again,) = self._train_many([retry], search)
+                again["retry"] = True
+                self._log_search(again)
+                if again["weighted_mse"] < record["weighted_mse"]:
+                    net, record = retry, again
+            score = record["weighted_mse"]
+            # kept as is: growing builds a new net, the search never trains this again
+            tried.append((score, n_parameters(layers, n_in, n_out), layers, net))
+            if layer_best is None or score < layer_best[0] * (1 - self.tol):
+                layer_best, stale = (score, layers, net), 0
+            else:
+                stale += 1
+                if stale >= self.neuron_patience:
+                    break
         return layer_best
 
     def _start(self, layers, net, previous_layer_net, generator, n_in, n_out):
@@ -379,15 +360,14 @@ class AdaptiveMLP(BaseEstimator):
 
     def _train_many(self, nets, tensors, max_epochs: int | None = None,
                     patience: int | None = None) -> list[dict]:
-        """Full-batch L-BFGS of ``nets`` (same depth) together (`lbfgs.train_lbfgs`), early
-        stopped on validation; each net keeps its best weights. Returns one record per net
-        (its ``seconds`` are the batch's shared equally)."""
+        """Full-batch L-BFGS of each of ``nets`` (`lbfgs.train_lbfgs`), early stopped on
+        validation; each net keeps its best weights. Returns one record per net (``seconds``:
+        the call's time shared equally)."""
         started = time.perf_counter()
         results = train_lbfgs(
             nets, self.activation, tensors["train"], tensors["validation"],
             max_epochs=int(max_epochs or self.max_epochs),
             steps_per_epoch=int(self.steps_per_epoch), patience=int(patience or self.patience),
-            plateau=self.plateau if max_epochs is None else 0.0,
         )
         seconds = (time.perf_counter() - started) / len(nets)
         records = []

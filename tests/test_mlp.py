@@ -153,7 +153,6 @@ def test_inference_does_not_need_torch(fitted, tmp_path):
         ({"activation": "swish"}, "activation must be one of"),
         ({"max_neurons": 0}, "max_neurons must be a whole number >= 1"),
         ({"test_weight": 2}, r"test_weight must be in \[0, 1\]"),
-        ({"plateau": 1.0}, r"plateau must be in \[0, 1\)"),
     ],
 )
 def test_bad_parameters_are_named(params, message):
@@ -323,7 +322,7 @@ def test_training_does_not_import_torch_dynamo():
     assert out.stdout.strip() == "False"
 
 
-# -- the batched L-BFGS (reconstruct/lbfgs.py) -------------------------------------------------
+# -- the numpy gradients and L-BFGS of reconstruct/lbfgs.py ------------------------------------
 def _nets(layer_list, seed=0, activation="tanh"):
     import torch
 
@@ -364,9 +363,9 @@ def test_batched_gradients_equal_torch_autograd(activation):
                                    rtol=1e-10, atol=1e-13)
 
 
-def test_batched_lbfgs_fits_a_known_function_and_nets_do_not_interact():
+def test_lbfgs_fits_a_known_function_and_each_net_of_a_list_trains_as_alone():
     """A 2-16-3 net learns a smooth known map to far below its variance, and a net trained in
-    a batch beside others ends exactly where it ends alone."""
+    a list with others ends exactly where it ends alone."""
     from reconstruct.lbfgs import train_lbfgs
     from reconstruct.networks import mse as _mse
 
@@ -386,7 +385,7 @@ def test_batched_lbfgs_fits_a_known_function_and_nets_do_not_interact():
     assert results[0][0] == pytest.approx(error, rel=1e-12)
 
 
-def test_batched_lbfgs_early_stops_at_the_best_validation_weights_and_is_deterministic():
+def test_lbfgs_early_stops_at_the_best_validation_weights_and_is_deterministic():
     """On noisy samples a wide net starts fitting the noise: training stops `patience` epochs
     after the validation error's minimum and leaves every net at that minimum; the same start
     gives the same weights bit for bit."""
@@ -411,17 +410,3 @@ def test_batched_lbfgs_early_stops_at_the_best_validation_weights_and_is_determi
     for a, b in zip(*runs, strict=True):
         np.testing.assert_array_equal(a, b)
 
-
-def test_a_converged_net_stops_on_the_plateau_of_its_training_error():
-    """A 2-4-3 net converges on the known map long before 30 epochs (its training error then
-    falls by tiny fractions): ``plateau`` (the search's rule) stops it there, at nearly the
-    same validation error."""
-    from reconstruct.lbfgs import train_lbfgs
-
-    x, y = _known_function(200)
-    xv, yv = x[:40], y[:40]
-    ((plain_val, plain),) = train_lbfgs(_nets([(4,)]), "tanh", (x, y), (xv, yv), 30, 5, 30)
-    ((val, stopped),) = train_lbfgs(_nets([(4,)]), "tanh", (x, y), (xv, yv), 30, 5, 30,
-                                    plateau=0.01)
-    assert stopped < 0.7 * plain
-    assert val == pytest.approx(plain_val, rel=0.05)

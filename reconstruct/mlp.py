@@ -13,11 +13,12 @@ errors of the lowest, the one with the most parameters is returned. Measured on
 bench/quality.py (S-curve and half torus, seeds 1 and 2): the lowest error alone chose nets
 such as (6,) or (14,) that underfit, with meshes up to 2.6× the Chamfer distance.
 
-Training is full-batch L-BFGS (`lbfgs.py`: numpy computes the loss and its gradient by hand,
-scipy's compiled L-BFGS-B takes the steps) of the nets of `networks.py`. The chosen configuration is
-then trained to convergence from its searched weights and from a fresh start, and their mean
-is kept while the two agree (one MLP with the two side by side). That net is exported to ONNX
-with its normalisation inside; `predict` and meshing run on onnxruntime.
+Training is full-batch L-BFGS (`lbfgs.py`: torch computes the loss and its gradient, scipy's
+compiled L-BFGS-B takes the steps) of the nets of `networks.py`, with the torch, BLAS and
+OpenMP pools at one thread whatever the shell sets (`networks.one_torch_thread`). The chosen
+configuration is then trained to convergence from its searched weights and from a fresh start,
+and their mean is kept while the two agree (one MLP with the two side by side). That net is
+exported to ONNX with its normalisation inside; `predict` and meshing run on onnxruntime.
 """
 
 from __future__ import annotations
@@ -201,8 +202,27 @@ class AdaptiveMLP(BaseEstimator):
         previous_layer_net = None
         with one_torch_thread():
             for _layer in range(int(self.max_layers)):
-                layer_best = self._search_layer(best[1] if best else (), previous_layer_net,
-                                                search, generator, n_in, n_out, tried)
+                layer_best, stale, net = None, 0, None
+                for width in range(1, int(self.max_neurons) + 1):
+                    layers = (*(best[1] if best else ()), width)  # best earlier layers + 1
+                    net, record = self._search_step(layers, net, previous_layer_net, search,
+                                                    generator, n_in, n_out)
+                    if layer_best is not None and (
+                        record["weighted_mse"] > self.retry_factor * layer_best[0]
+                    ):  # a poor local minimum: one more start
+                        retry, again = self._search_step(layers, None, None, search, generator,
+                                                         n_in, n_out, retry=True)
+                        if again["weighted_mse"] < record["weighted_mse"]:
+                            net, record = retry, again
+                    score = record["weighted_mse"]
+                    # kept as is: growing builds a new net, the search never trains this again
+                    tried.append((score, n_parameters(layers, n_in, n_out), layers, net))
+                    if layer_best is None or score < layer_best[0] * (1 - self.tol):
+                        layer_best, stale = (score, layers, net), 0
+                    else:
+                        stale += 1
+                        if stale >= self.neuron_patience:
+                            break
                 if best is not None and layer_best[0] >= best[0] * (1 - self.tol):
                     break  # a further layer did not help: stop growing
                 if best is None or layer_best[0] < best[0]:
@@ -303,86 +323,50 @@ class AdaptiveMLP(BaseEstimator):
         parts["all"] = np.sort(np.concatenate([parts["train"], parts["test"], parts["validation"]]))
         return parts
 
-    def _search_layer(self, earlier, previous_layer_net, search, generator, n_in, n_out,
-                      tried) -> tuple:
-        """Grow the next hidden layer after the ``earlier`` widths neuron by neuron; append
-        (weighted, n_parameters, layers, net) of every configuration to ``tried``; return the
-        layer's best (weighted, layers, net)."""
-        layer_best, stale, net = None, 0, None
-        for width in range(1, int(self.max_neurons) + 1):
-            layers = (*earlier, width)
-            net = self._start(layers, net, previous_layer_net, generator, n_in, n_out)
-            (record,) = self._train_many([net], search)
-            self._log_search(record)
-            if layer_best is not None and (
-                record["weighted_mse"] > self.retry_factor * layer_best[0]
-            ):  # a poor local minimum: one more start
-                retry = build(layers, self.activation, n_in, n_out, generator)
-                (again,) = self._train_many([retry], search)
-                again["retry"] = True
-                self._log_search(again)
-                if again["weighted_mse"] < record["weighted_mse"]:
-                    net, record = retry, again
-            score = record["weighted_mse"]
-            # kept as is: growing builds a new net, the search never trains this again
-            tried.append((score, n_parameters(layers, n_in, n_out), layers, net))
-            if layer_best is None or score < layer_best[0] * (1 - self.tol):
-                layer_best, stale = (score, layers, net), 0
-            else:
-                stale += 1
-                if stale >= self.neuron_patience:
-                    break
-        return layer_best
-
-    def _start(self, layers, net, previous_layer_net, generator, n_in, n_out):
-        """The untrained net of the configuration ``layers``: new (``growth="fresh"``), or grown
-        from the previous width (``net``) or the previous layer's best net ("net2net")."""
-        if self.growth == "fresh" or (net is None and previous_layer_net is None):
-            return build(layers, self.activation, n_in, n_out, generator)
-        if net is None or len(linears(net)) != len(layers) + 1:
-            return deepen(previous_layer_net, layers, self.activation, n_in, n_out, generator)
-        return widen(net, layers, self.activation, n_in, n_out, generator)
-
-    def _log_search(self, record) -> None:
+    def _search_step(self, layers, net, previous_layer_net, search, generator, n_in, n_out,
+                     retry: bool = False):
+        """Build (or grow; a ``retry`` starts afresh) and train the configuration ``layers``;
+        returns (net, record)."""
+        if retry or self.growth == "fresh":
+            net = build(layers, self.activation, n_in, n_out, generator)
+        elif net is None:
+            net = (deepen(previous_layer_net, layers, self.activation, n_in, n_out, generator)
+                   if previous_layer_net is not None
+                   else build(layers, self.activation, n_in, n_out, generator))
+        else:
+            net = widen(net, layers, self.activation, n_in, n_out, generator)
+        record = self._train(net, search)
+        record["layers"] = layers
+        if retry:
+            record["retry"] = True
         self.history_.append(record)
         log.info(
             "MLP %s%s: train %.3g, test %.3g, validation %.3g (%d epochs, %.2f s)",
-            "-".join(map(str, record["layers"])), " (second start)" if record.get("retry") else "",
+            "-".join(map(str, layers)), " (second start)" if retry else "",
             record["train_mse"], record["test_mse"], record["validation_mse"], record["epochs"],
             record["seconds"],
         )
+        return net, record
 
     def _train(self, net, tensors, max_epochs: int | None = None,
                patience: int | None = None) -> dict:
-        """Train one net (`_train_many`); returns its record."""
-        (record,) = self._train_many([net], tensors, max_epochs, patience)
-        return record
-
-    def _train_many(self, nets, tensors, max_epochs: int | None = None,
-                    patience: int | None = None) -> list[dict]:
-        """Full-batch L-BFGS of each of ``nets`` (`lbfgs.train_lbfgs`), early stopped on
-        validation; each net keeps its best weights. Returns one record per net (``seconds``:
-        the call's time shared equally)."""
+        """Full-batch L-BFGS (`lbfgs.train_lbfgs`) with early stopping on validation; the net
+        keeps its best weights. Returns the record of the run."""
         started = time.perf_counter()
-        results = train_lbfgs(
-            nets, self.activation, tensors["train"], tensors["validation"],
+        best_val, epochs = train_lbfgs(
+            net, tensors["train"], tensors["validation"],
             max_epochs=int(max_epochs or self.max_epochs),
             steps_per_epoch=int(self.steps_per_epoch), patience=int(patience or self.patience),
         )
-        seconds = (time.perf_counter() - started) / len(nets)
-        records = []
-        for net, (best_val, epochs) in zip(nets, results, strict=True):
-            train, test = mse(net, *tensors["train"]), mse(net, *tensors["test"])
-            records.append({
-                "layers": tuple(m.out_features for m in linears(net)[:-1]),
-                "train_mse": train,
-                "test_mse": test,
-                "validation_mse": best_val,
-                "weighted_mse": (1 - self.test_weight) * train + self.test_weight * test,
-                "epochs": epochs,
-                "seconds": seconds,
-            })
-        return records
+        train, test = mse(net, *tensors["train"]), mse(net, *tensors["test"])
+        return {
+            "train_mse": train,
+            "test_mse": test,
+            "validation_mse": best_val,
+            "weighted_mse": (1 - self.test_weight) * train + self.test_weight * test,
+            "epochs": epochs,
+            "seconds": time.perf_counter() - started,
+        }
 
     def _train_final(self, net, tensors, generator):
         """Train the chosen configuration to convergence twice, from its searched weights and
@@ -403,8 +387,8 @@ class AdaptiveMLP(BaseEstimator):
         n_in, n_out = linears(net)[0].in_features, linears(net)[-1].out_features
         fresh = build(self.hidden_layers_, self.activation, n_in, n_out, generator)
         candidates = []
-        records = self._train_many([net, fresh], final, self.final_epochs, self.final_patience)
-        for start, label, record in zip((net, fresh), ("warm", "fresh"), records, strict=True):
+        for start, label in ((net, "warm"), (fresh, "fresh")):
+            record = self._train(start, final, self.final_epochs, self.final_patience)
             record.update(layers=self.hidden_layers_, final=label)
             self.history_.append(record)
             candidates.append((record["weighted_mse"], label == "fresh", start))

@@ -32,11 +32,11 @@ def limit_threads(processes: int = 1) -> int:
     by side (at least 1). Returns the thread count set."""
     global _GLOBAL
     threads = max(1, available_cores() // max(1, int(processes)))
-    _GLOBAL = threadpool_limits(limits=threads)
+    for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[name] = str(threads)  # read by the libraries that are loaded later
+    _GLOBAL = threadpool_limits(limits=threads)  # the ones loaded already
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(threads)
-    else:
-        os.environ["OMP_NUM_THREADS"] = str(threads)  # read by torch's OpenMP when it loads
     return threads
 
 

@@ -218,16 +218,19 @@ def test_the_mean_is_kept_only_while_the_two_final_fits_agree(monkeypatch, fresh
     """A final fit whose weighted error is over 5 % above the other's stalled: keep the other."""
     import reconstruct.mlp as mlp_module
 
-    train = mlp_module.AdaptiveMLP._train_many
+    train = mlp_module.AdaptiveMLP._train
 
-    def train_with_a_worse_fresh_fit(self, nets, tensors, max_epochs=None, patience=None):
-        records = train(self, nets, tensors, max_epochs, patience)
-        if max_epochs == self.final_epochs:  # the final fits: (warm, fresh)
-            warm, fresh = records
-            fresh["weighted_mse"] = fresh_factor * warm["weighted_mse"]
-        return records
+    def train_with_a_worse_fresh_fit(self, net, tensors, max_epochs=None, patience=None):
+        record = train(self, net, tensors, max_epochs, patience)
+        if max_epochs == self.final_epochs:
+            self._finals = getattr(self, "_finals", 0) + 1
+            if self._finals == 1:
+                self._warm_mse = record["weighted_mse"]
+            else:
+                record["weighted_mse"] = fresh_factor * self._warm_mse
+        return record
 
-    monkeypatch.setattr(mlp_module.AdaptiveMLP, "_train_many", train_with_a_worse_fresh_fit)
+    monkeypatch.setattr(mlp_module.AdaptiveMLP, "_train", train_with_a_worse_fresh_fit)
     uv, xyz = paraboloid(300)
     model = AdaptiveMLP(random_state=0, **SMALL).fit(uv, xyz)
     widths = [m.out_features for m in model.torch_model_ if hasattr(m, "out_features")][:-1]
@@ -239,18 +242,18 @@ def scripted_search(monkeypatch, scores):
     """Make the search's weighted errors ``scores[layers]`` (a list: one per start)."""
     import reconstruct.mlp as mlp_module
 
-    train = mlp_module.AdaptiveMLP._train_many
+    train = mlp_module.AdaptiveMLP._train
     starts = {}
 
-    def train_scripted(self, nets, tensors, max_epochs=None, patience=None):
-        records = train(self, nets, tensors, 2 if max_epochs is None else max_epochs, patience)
-        for record in records if max_epochs is None else ():  # searched configurations
-            layers = record["layers"]
+    def train_scripted(self, net, tensors, max_epochs=None, patience=None):
+        record = train(self, net, tensors, 2 if max_epochs is None else max_epochs, patience)
+        if max_epochs is None:  # a searched configuration
+            layers = tuple(m.out_features for m in net if hasattr(m, "out_features"))[:-1]
             run = starts[layers] = starts.get(layers, -1) + 1
             record["weighted_mse"] = scores[layers][min(run, len(scores[layers]) - 1)]
-        return records
+        return record
 
-    monkeypatch.setattr(mlp_module.AdaptiveMLP, "_train_many", train_scripted)
+    monkeypatch.setattr(mlp_module.AdaptiveMLP, "_train", train_scripted)
 
 
 def test_a_configuration_far_above_its_layer_best_gets_a_second_start(monkeypatch):
@@ -320,93 +323,3 @@ def test_training_does_not_import_torch_dynamo():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
-
-
-# -- the numpy gradients and L-BFGS of reconstruct/lbfgs.py ------------------------------------
-def _nets(layer_list, seed=0, activation="tanh"):
-    import torch
-
-    from reconstruct.networks import build as _build
-
-    generator = torch.Generator().manual_seed(seed)
-    return [_build(layers, activation, 2, 3, generator) for layers in layer_list]
-
-
-def _known_function(n, seed=0, sigma=0.0):
-    rng = np.random.default_rng(seed)
-    x = rng.uniform(-1, 1, size=(n, 2))
-    y = np.column_stack([np.sin(2 * x[:, 0]), x[:, 0] * x[:, 1], np.tanh(3 * x[:, 1])])
-    return x, y + rng.normal(0, sigma, size=y.shape)
-
-
-@pytest.mark.parametrize("activation", ["tanh", "sigmoid", "relu", "elu", "softplus"])
-def test_batched_gradients_equal_torch_autograd(activation):
-    """The hand-written back-propagation of every activation, through padded nets of
-    different widths, equals torch's autograd of each net alone."""
-    import torch
-
-    from reconstruct.lbfgs import BatchedMLP
-
-    nets = _nets([(3, 5), (6, 2), (4, 4)], activation=activation)
-    x, y = _known_function(50)
-    model = BatchedMLP(nets, activation)
-    losses, grads = model.losses_and_gradients(model.theta, x, y, np.arange(3))
-    for b, net in enumerate(nets):
-        loss = torch.mean((net(torch.from_numpy(x)) - torch.from_numpy(y)) ** 2)
-        loss.backward()
-        assert losses[b] == pytest.approx(loss.item(), rel=1e-12)
-        expected = BatchedMLP([net], activation)
-        for p in net.parameters():  # autograd's gradients, laid out as the batch lays them
-            p.data = p.grad.clone()
-        np.testing.assert_allclose(grads[b][model.mask[b] > 0],
-                                   BatchedMLP([net], activation).theta[0][expected.mask[0] > 0],
-                                   rtol=1e-10, atol=1e-13)
-
-
-def test_lbfgs_fits_a_known_function_and_each_net_of_a_list_trains_as_alone():
-    """A 2-16-3 net learns a smooth known map to far below its variance, and a net trained in
-    a list with others ends exactly where it ends alone."""
-    from reconstruct.lbfgs import train_lbfgs
-    from reconstruct.networks import mse as _mse
-
-    x, y = _known_function(400)
-    xv, yv = _known_function(100, seed=1)
-    alone = _nets([(16,)])
-    together = _nets([(16,), (3,), (8,)])
-    train_lbfgs(alone, "tanh", (x, y), (xv, yv), max_epochs=40, steps_per_epoch=20, patience=40)
-    results = train_lbfgs(together, "tanh", (x, y), (xv, yv), max_epochs=40, steps_per_epoch=20,
-                          patience=40)
-    import torch
-
-    error = _mse(alone[0], torch.from_numpy(xv), torch.from_numpy(yv))
-    assert error < 1e-3 * y.var()
-    for a, b in zip(alone[0].parameters(), together[0].parameters(), strict=True):
-        np.testing.assert_array_equal(a.detach().numpy(), b.detach().numpy())
-    assert results[0][0] == pytest.approx(error, rel=1e-12)
-
-
-def test_lbfgs_early_stops_at_the_best_validation_weights_and_is_deterministic():
-    """On noisy samples a wide net starts fitting the noise: training stops `patience` epochs
-    after the validation error's minimum and leaves every net at that minimum; the same start
-    gives the same weights bit for bit."""
-    import torch
-
-    from reconstruct.lbfgs import train_lbfgs
-    from reconstruct.networks import mse as _mse
-
-    x, y = _known_function(60, sigma=0.3)
-    xv, yv = _known_function(40, seed=1, sigma=0.3)
-    runs = []
-    for _ in range(2):
-        nets = _nets([(20,), (30,)])
-        results = train_lbfgs(nets, "tanh", (x, y), (xv, yv), max_epochs=200, steps_per_epoch=5,
-                              patience=3)
-        runs.append([np.concatenate([p.detach().numpy().ravel() for p in n.parameters()])
-                     for n in nets])
-        for net, (best, epochs) in zip(nets, results, strict=True):
-            assert 3 < epochs < 200
-            assert _mse(net, torch.from_numpy(xv), torch.from_numpy(yv)) == pytest.approx(
-                best, rel=1e-12)
-    for a, b in zip(*runs, strict=True):
-        np.testing.assert_array_equal(a, b)
-

@@ -25,7 +25,6 @@ import numpy as np
 import trimesh
 
 from reconstruct.pipeline import SurfaceReconstructor
-from reconstruct.threads import limit_threads
 
 from .cloud import VoxelCloud
 from .patch_cache import CachedPatches, PatchCache, PatchFit
@@ -82,8 +81,7 @@ class IncrementalEngine:
         self._thread = None
         if self.workers > 1:
             self._executor = concurrent.futures.ProcessPoolExecutor(
-                self.workers, mp_context=multiprocessing.get_context("spawn"),
-                initializer=limit_threads, initargs=(self.workers,))  # a share of the cores each
+                self.workers, mp_context=multiprocessing.get_context("spawn"))
             for _ in range(self.workers):  # import torch & co. while the scan starts
                 self._executor.submit(_warm_up)
         if background:

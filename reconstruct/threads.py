@@ -1,43 +1,23 @@
 """Thread pools sized by the program, not by the user's shell.
 
-The nets and matrices of one fit are small: BLAS, OpenMP and torch threads only contend with
-each other and with the other fitting process. Measured (issue 17): a 12-view
-``scanstation scan`` took 416 s in a plain shell and 148 s with OMP_NUM_THREADS=1
-OPENBLAS_NUM_THREADS=1. `limit_threads` sets every pool of this process (numpy's and scipy's
-OpenBLAS, OpenMP, torch when it is loaded) to a share of the machine's cores; worker processes
-call it once at start, and training runs inside `single_threaded`.
+Training a small net calls BLAS on vectors of a few hundred numbers (scipy's L-BFGS-B steps):
+OpenBLAS's default of one thread per core only adds hand-offs, and on a loaded machine each
+hand-off can wait for a descheduled thread. Measured here, scipy 1.17, 150-parameter problem
+under load: 25 ms per L-BFGS-B evaluation with 2 OpenBLAS threads, 0.04 ms with one. The
+search of bench.speed in a plain shell, before and after training ran inside
+`single_threaded` (two runs six minutes apart, scikit-learn's lbfgs 1.2 s in both): sphere
+cap 35.0 s → 5.2 s, rough surface 12.3 s → 11.8 s; the gain depends on the load.
+
+Only the training is limited: the embedding's dense eigenproblems do use a second core. Capping
+every pool of the scan engine's two worker processes at one thread each (threadpoolctl in the
+pool's initializer) took bench.scan's vase from 53 s to 81 s on a quiet machine.
 """
 
 from __future__ import annotations
 
 import contextlib
-import os
-import sys
 
 from threadpoolctl import threadpool_limits
-
-_GLOBAL = None  # the process-wide limits, kept alive
-
-
-def available_cores() -> int:
-    """Cores this process may run on (its affinity mask; cgroup CPU quotas are not read)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
-
-
-def limit_threads(processes: int = 1) -> int:
-    """Limit this process's thread pools to its share of the cores when ``processes`` fit side
-    by side (at least 1). Returns the thread count set."""
-    global _GLOBAL
-    threads = max(1, available_cores() // max(1, int(processes)))
-    for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[name] = str(threads)  # read by the libraries that are loaded later
-    _GLOBAL = threadpool_limits(limits=threads)  # the ones loaded already
-    if "torch" in sys.modules:
-        sys.modules["torch"].set_num_threads(threads)
-    return threads
 
 
 @contextlib.contextmanager

@@ -14,10 +14,11 @@ bench/quality.py (S-curve and half torus, seeds 1 and 2): the lowest error alone
 such as (6,) or (14,) that underfit, with meshes up to 2.6× the Chamfer distance.
 
 Training is full-batch L-BFGS (`lbfgs.py`: torch computes the loss and its gradient, scipy's
-compiled L-BFGS-B takes the steps) of the nets of `networks.py`. The chosen configuration is
-then trained to convergence from its searched weights and from a fresh start, and their mean
-is kept while the two agree (one MLP with the two side by side). That net is exported to ONNX
-with its normalisation inside; `predict` and meshing run on onnxruntime.
+compiled L-BFGS-B takes the steps) of the nets of `networks.py`, with the torch, BLAS and
+OpenMP pools at one thread whatever the shell sets (`networks.one_torch_thread`). The chosen
+configuration is then trained to convergence from its searched weights and from a fresh start,
+and their mean is kept while the two agree (one MLP with the two side by side). That net is
+exported to ONNX with its normalisation inside; `predict` and meshing run on onnxruntime.
 """
 
 from __future__ import annotations
@@ -110,7 +111,8 @@ class AdaptiveMLP(BaseEstimator):
     Fitted: ``hidden_layers_`` (tuple of widths), ``history_`` (one dict per configuration),
     ``surface_map_`` (`OnnxSurfaceMap`), ``torch_model_`` (the chosen net, normalised
     units: the mean of two final fits, as one MLP twice as wide; or the retrained net),
-    ``train_error_``/``test_error_``/``validation_error_`` (MSE in input units).
+    ``train_error_``/``test_error_``/``validation_error_`` (MSE in input units),
+    ``timings_`` (seconds of the search, the final fits and the ONNX export).
     """
 
     def __init__(
@@ -247,13 +249,17 @@ class AdaptiveMLP(BaseEstimator):
             tie = self.near_best * np.sqrt(2.0 / len(tensors["test"][0]))  # standard errors
             near = [t for t in tried if t[0] <= best[0] * (1 + tie)]
             _, _, self.hidden_layers_, net = max(near, key=lambda t: (t[1], -t[0]))
+            searched = time.perf_counter()
             if self.retrain:
                 net = self._retrain(net, tensors, generator)
             else:
                 net = self._train_final(net, tensors, generator)
+        trained = time.perf_counter()
         self.torch_model_ = net.eval()
         self._store_errors(tensors)
         self.surface_map_ = OnnxSurfaceMap(self._export(net))
+        self.timings_ = {"search": searched - started, "final fits": trained - searched,
+                         "export": time.perf_counter() - trained}
         log.info(
             "MLP chose hidden layers %s after %d configurations (%.1f s)",
             self.hidden_layers_, len(self.history_), time.perf_counter() - started,

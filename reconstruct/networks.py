@@ -11,6 +11,8 @@ import copy
 
 import numpy as np
 
+from .threads import single_threaded
+
 
 def load_torch():
     import torch  # training only; inference never imports torch
@@ -130,11 +132,13 @@ def mse(net, x, y) -> float:
 
 @contextlib.contextmanager
 def one_torch_thread():
-    """Tiny nets on shared cores: one thread is faster and stable (measured 10–50× swings)."""
+    """Tiny nets on shared cores: one thread is faster and stable (measured 10–50× swings), for
+    torch and for the BLAS and OpenMP pools (numpy, scipy) whatever the shell sets."""
     torch = load_torch()
     previous = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        yield
+        with single_threaded():
+            yield
     finally:
         torch.set_num_threads(previous)

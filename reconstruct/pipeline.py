@@ -89,6 +89,8 @@ class SurfaceReconstructor(BaseEstimator):
     ``unexplained_`` share of the points the mesh leaves farther than their noise allows and
     ``neighbour_preservation_`` of the embedding (`reconstruct.faithfulness`; a
     `ReconstructionWarning` when the share is over 5 %).
+    ``timings_`` (seconds per stage of the last fit / remesh: embedding, search, final fits,
+    export, boundary, mesh).
     """
 
     def __init__(
@@ -139,6 +141,7 @@ class SurfaceReconstructor(BaseEstimator):
         self._check_mesh_params()
         points = check_points(points)
         started = time.perf_counter()
+        self.timings_ = {}
         n_neighbors = self.n_neighbors
         if warm_start is not None:
             if not hasattr(warm_start, "mlp_"):
@@ -147,6 +150,7 @@ class SurfaceReconstructor(BaseEstimator):
         embedding = SurfaceEmbedding(
             method=self.embedding, n_neighbors=n_neighbors, random_state=self.random_state
         ).fit(points)
+        self.timings_["embedding"] = time.perf_counter() - started
         fitted = points[embedding.support_]
         uv = embedding.embedding_
         if warm_start is None:
@@ -163,6 +167,7 @@ class SurfaceReconstructor(BaseEstimator):
         self.mlp_ = mlp
         self.surface_map_ = mlp.surface_map_
         self.hidden_layers_ = tuple(mlp.hidden_layers_)
+        self.timings_.update(getattr(mlp, "timings_", {}))
         self._boundary_cache = {}
         self.remesh()
         self._check_faithful()
@@ -228,6 +233,7 @@ class SurfaceReconstructor(BaseEstimator):
         interpolants = self._boundary_points()
         spline = BoundarySpline(lam=self.lam, variance=self.variance).fit(interpolants)
         outline = self._extended(spline.polygon_)
+        bounded = time.perf_counter()
         spacing = self.grid_spacing or default_spacing(outline, len(self.embedding_))
         boundary_vertices = sample_ring(outline, spacing)
         vertices_2d, faces = mesh_inside(outline, boundary_vertices, spacing)
@@ -237,6 +243,8 @@ class SurfaceReconstructor(BaseEstimator):
         self.outline_ = outline
         self.vertices_2d_ = vertices_2d
         self.mesh_ = trimesh.Trimesh(vertices_3d, faces, process=False)
+        self.timings_ = {**getattr(self, "timings_", {}), "boundary": bounded - started,
+                         "mesh": time.perf_counter() - bounded}
         log.info(
             "meshed: λ=%g, depth %d, %d interpolants, %d vertices, %d faces (%.0f ms)",
             self.lam,

@@ -1,0 +1,27 @@
+"""Thread pools sized by the program, not by the user's shell.
+
+Training a small net calls BLAS on vectors of a few hundred numbers (scipy's L-BFGS-B steps):
+OpenBLAS's default of one thread per core only adds hand-offs, and on a loaded machine each
+hand-off can wait for a descheduled thread. Measured here, scipy 1.17, 150-parameter problem
+under load: 25 ms per L-BFGS-B evaluation with 2 OpenBLAS threads, 0.04 ms with one. The
+search of bench.speed in a plain shell, before and after training ran inside
+`single_threaded` (two runs six minutes apart, scikit-learn's lbfgs 1.2 s in both): sphere
+cap 35.0 s → 5.2 s, rough surface 12.3 s → 11.8 s; the gain depends on the load.
+
+Only the training is limited: the embedding's dense eigenproblems do use a second core. Capping
+every pool of the scan engine's two worker processes at one thread each (threadpoolctl in the
+pool's initializer) took bench.scan's vase from 53 s to 81 s on a quiet machine.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+from threadpoolctl import threadpool_limits
+
+
+@contextlib.contextmanager
+def single_threaded():
+    """BLAS and OpenMP pools at one thread inside the block (restored after)."""
+    with threadpool_limits(limits=1):
+        yield

@@ -19,6 +19,9 @@ OpenMP pools at one thread whatever the shell sets (`networks.one_torch_thread`)
 configuration is then trained to convergence from its searched weights and from a fresh start,
 and their mean is kept while the two agree (one MLP with the two side by side). That net is
 exported to ONNX with its normalisation inside; `predict` and meshing run on onnxruntime.
+
+About 470 lines: the search and its final fits share the samples, the random streams and the
+stored errors, so they stay one estimator (the nets and their training loop are apart).
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """GRBL 1.1 protocol parsing, and the simulator answering as GRBL.md says the real firmware does.
 
 The simulator runs on a fake clock here, so motion timing is checked exactly and instantly.
+About 450 lines: one file per protocol, parser and firmware simulator tested side by side.
 """
 
 import math

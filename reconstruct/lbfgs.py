@@ -1,8 +1,8 @@
 """Full-batch L-BFGS for a small torch net: torch gives the loss and gradient, scipy steps.
 
-scipy's compiled L-BFGS-B loop costs 1.4–3× less per iteration than ``torch.optim.LBFGS`` on
-the adaptive search's tiny nets, and it spares the 1.2 s import of ``torch._dynamo`` that
-torch's optimisers trigger on first use.
+scipy's compiled L-BFGS-B loop costs less per iteration than ``torch.optim.LBFGS`` on the
+adaptive search's tiny nets (measured when it came in: see the commit history), and it spares
+the import of ``torch._dynamo`` that torch's optimisers trigger on first use.
 """
 
 from __future__ import annotations

@@ -74,10 +74,8 @@ class AdaptiveMLP(BaseEstimator):
     patience : epochs without validation improvement before early stopping (the search, and
         `fine_tune`).
     final_patience : the same for the chosen configuration's final fits. Their held-out error
-        is mostly the noise and creeps down slowly: stopping after 6 flat epochs left fits
-        short of the surface. With 10 (bench/quality.py, 1,600 points): S-curve σ 0.5 %
-        Chamfer-L1 0.0096 → 0.0084, half torus σ 1 % F-score 0.960 → 0.970. 15 was no better
-        on these and took the half torus end to end from 7.4 s to 13.4 s (bench/speed.py).
+        is mostly the noise and creeps down slowly, so they wait longer than the search (10
+        was chosen on bench/quality.py and bench/speed.py; the figures are in the history).
     neuron_patience : added neurons without a better weighted error before the layer is closed.
     retry_factor : a configuration whose weighted error comes out over this factor above its
         layer's best so far landed in a poor local minimum (more neurons fit at least as well):

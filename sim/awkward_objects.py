@@ -70,7 +70,7 @@ def torus() -> trimesh.Trimesh:
 
 
 def figurine() -> trimesh.Trimesh:
-    """A 150 mm figurine: body, head, two 2 mm ears curled 300°, two legs (genus 0)."""
+    """A 130 mm figurine: body, head, two thin ears curled 300°, two legs (genus 0)."""
     body = _moved(trimesh.creation.capsule(50, 28, count=(48, 48)), (0, 0, 75))
     head = _moved(trimesh.creation.icosphere(4, 24), (0, 0, 125))
     legs = [_moved(trimesh.creation.cylinder(9, 45, sections=48), (x, 0, 22.5)) for x in (-14, 14)]
@@ -79,14 +79,16 @@ def figurine() -> trimesh.Trimesh:
         ear = _curled_shell(9, 2, 30, 300)
         tilt = trimesh.transformations.rotation_matrix(side * 0.35, (0, 1, 0))
         ears.append(_moved(ear, (side * 16, 0, 150), tilt))
-    return _union(body, head, *legs, *ears)
+    figure = _union(body, head, *legs, *ears)
+    figure.apply_scale(130.0 / figure.extents[2])  # as tall as the camera frames
+    return figure
 
 
 def hook() -> trimesh.Trimesh:
-    """A 140 mm post with an arm whose finger hangs down beside it (an overhang, genus 0)."""
-    post = _moved(trimesh.creation.box((24, 24, 140)), (0, 0, 70))
-    arm = _moved(trimesh.creation.box((70, 20, 18)), (30, 0, 131))
-    finger = _moved(trimesh.creation.box((16, 20, 70)), (57, 0, 105))
+    """A 125 mm post with an arm whose finger hangs down beside it (an overhang, genus 0)."""
+    post = _moved(trimesh.creation.box((24, 24, 125)), (0, 0, 62.5))
+    arm = _moved(trimesh.creation.box((70, 20, 18)), (30, 0, 116))
+    finger = _moved(trimesh.creation.box((16, 20, 70)), (57, 0, 90))
     foot = _moved(trimesh.creation.box((60, 60, 8)), (0, 0, 4))
     return _union(post, arm, finger, foot)
 

@@ -26,6 +26,7 @@ def test_object_is_closed_oriented_and_of_its_genus(name):
     assert mesh.euler_number == 2 - 2 * GENUS[name]
     assert len(mesh.split(only_watertight=False)) == 1
     assert 100 < np.linalg.norm(mesh.extents) < 250  # about 150 mm, as on a scan station
+    assert mesh.extents[2] <= 130 and mesh.extents[:2].max() < 200  # fits the plate and frame
     assert mesh.bounds[0, 2] == pytest.approx(0.0)
 
 

@@ -8,7 +8,8 @@ import threading
 import pytest
 
 from capture.daemon.jobs import devices_overlap
-from capture.daemon.store import ACTIVE_STATES, JobStore, ScanRecord
+from capture.daemon.records import ACTIVE_STATES, ScanRecord
+from capture.daemon.store import JobStore
 
 
 def record(scan_id: str, state: str = "running", created: float = 1.0) -> ScanRecord:

@@ -45,9 +45,10 @@ from .isolation import (
     folder_in_use,
 )
 from .policy import DevicePolicy
+from .records import FINAL_STATES, ScanRecord
 from .refine import MeshRefiner
 from .schemas import ScanRequest, check_scan_request, device_keys, is_scan_id
-from .store import FINAL_STATES, JobStore, ScanRecord
+from .store import JobStore
 from .tracking import ScanTracker
 
 log = logging.getLogger(__name__)

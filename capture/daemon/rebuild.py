@@ -13,7 +13,7 @@ import logging
 import re
 from pathlib import Path
 
-from .store import FINAL_STATES, ScanRecord
+from .records import FINAL_STATES, ScanRecord
 
 log = logging.getLogger(__name__)
 

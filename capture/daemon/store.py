@@ -22,15 +22,9 @@ from pathlib import Path
 from typing import Any
 
 from .errors import DaemonError
+from .records import ACTIVE_STATES, STATES, ScanRecord
 
 log = logging.getLogger(__name__)
-
-#: states in which a scan holds its devices (``queued``: waiting for a free slot;
-#: ``starting``: its process opens the devices)
-ACTIVE_STATES = ("queued", "starting", "idle", "running", "paused", "stopping")
-#: states a scan ends in (re-processing a scan runs it again through `processing`)
-FINAL_STATES = ("done", "failed", "interrupted")
-STATES = (*ACTIVE_STATES, "processing", *FINAL_STATES)
 
 SCHEMA_VERSION = 1
 _SIDE_FILES = ("-wal", "-shm")
@@ -71,45 +65,6 @@ CREATE TABLE IF NOT EXISTS scans (
 CREATE INDEX IF NOT EXISTS scans_created ON scans (created);
 """
 _JSON_FIELDS = ("devices", "request", "progress", "mesh_params")
-
-
-@dataclasses.dataclass
-class ScanRecord:
-    """One scan as stored. ``progress``: views_done, views_total, fraction (from the runner's
-    documents); ``mesh_version`` counts meshes (engine updates and refines); ``mesh_params``:
-    the λ and depth of the current mesh."""
-
-    id: str
-    state: str
-    devices: list[str]
-    request: dict[str, Any]
-    out_dir: str
-    created: float
-    updated: float
-    reason: str = ""
-    progress: dict[str, Any] = dataclasses.field(default_factory=dict)
-    mesh_version: int = 0
-    mesh_params: dict[str, Any] = dataclasses.field(default_factory=dict)
-
-    def to_public(self) -> dict[str, Any]:
-        """The JSON the API answers (no server paths)."""
-        data = dataclasses.asdict(self)
-        data.pop("out_dir")
-        for key in ("camera_url", "turntable_url", "object"):
-            data[key] = self.request.get(key)
-        data["plan"] = plan_summary(self.request.get("plan"))
-        data.pop("request")
-        return data
-
-
-def plan_summary(plan: dict | None) -> dict | None:
-    """The plan without its list of angles (``n_views`` instead): a status answer does not grow
-    with the plan (the full plan: ``GET …/plan``)."""
-    if not isinstance(plan, dict):
-        return None
-    summary = {k: v for k, v in plan.items() if k != "angles"}
-    summary["n_views"] = len(plan.get("angles") or ())
-    return summary
 
 
 class JobStore:

@@ -58,3 +58,20 @@ def no_leaked_threads():
 def leaked_threads():
     """The leak check itself: ``leaked_threads(before)`` lists the threads it would fail on."""
     return _leaked
+
+
+@pytest.fixture
+def state_dir(tmp_path):
+    """A daemon's state dir, not created yet (the daemon makes it, 0700)."""
+    return tmp_path / "state"
+
+
+@pytest.fixture
+def client(state_dir):
+    """The daemon's app on ``state_dir``, in this process (`fastapi.testclient.TestClient`)."""
+    from fastapi.testclient import TestClient
+
+    from capture.daemon.app import create_app
+
+    with TestClient(create_app(state_dir)) as client:
+        yield client

@@ -16,17 +16,6 @@ from capture.recording import read_recording
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
-@pytest.fixture
-def state_dir(tmp_path):
-    return tmp_path / "state"
-
-
-@pytest.fixture
-def client(state_dir):
-    with TestClient(create_app(state_dir)) as client:
-        yield client
-
-
 def start(client, views=4, settle_s=0.0, urls=None, **plan_fields) -> dict:
     body = {"plan": capture_plan(views, settle_s, **plan_fields), **(urls or station_urls())}
     response = client.post("/api/v1/scans", json=body)

@@ -16,17 +16,6 @@ from fastapi.testclient import TestClient
 from capture.daemon.app import create_app
 
 
-@pytest.fixture
-def state_dir(tmp_path):
-    return tmp_path / "state"
-
-
-@pytest.fixture
-def client(state_dir):
-    with TestClient(create_app(state_dir)) as client:
-        yield client
-
-
 def test_state_changing_routes_take_only_json_from_the_same_origin(client):
     scan = client.post("/api/v1/scans", json={"plan": capture_plan(40, settle_s=0.2),
                                               **station_urls()}).json()

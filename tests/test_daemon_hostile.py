@@ -24,17 +24,6 @@ from fastapi.testclient import TestClient
 from capture.daemon.app import create_app
 
 
-@pytest.fixture
-def state_dir(tmp_path):
-    return tmp_path / "state"
-
-
-@pytest.fixture
-def client(state_dir):
-    with TestClient(create_app(state_dir)) as client:
-        yield client
-
-
 # -- 1. the event loop never waits on a device or a child -------------------------------------
 def test_post_answers_starting_while_the_device_has_not_answered_and_the_api_stays_live(
         state_dir):

@@ -12,11 +12,9 @@ through its ONNX map with a new λ / depth: no training.
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
 import json
 import logging
-import multiprocessing
 import queue
 import threading
 import time
@@ -27,6 +25,7 @@ import trimesh
 
 from reconstruct.pipeline import SurfaceReconstructor
 
+from ..executors import make_executor
 from ..plan import ReconstructionParams
 from .cloud import VoxelCloud
 from .patch_cache import PatchCache, PatchFit
@@ -97,11 +96,8 @@ class IncrementalEngine:
         self._lock = threading.Lock()
         self._queue: queue.Queue = queue.Queue()
         self._thread = None
-        if self._owns_executor and self.workers > 1:
-            self._executor = concurrent.futures.ProcessPoolExecutor(
-                self.workers, mp_context=multiprocessing.get_context("spawn"))
-            for _ in range(self.workers):  # import torch & co. while the scan starts
-                self._executor.submit(_warm_up)
+        if self._owns_executor:  # local spawn processes, torch imported while the scan starts
+            self._executor = make_executor(None, self.workers)
         if background:
             self._thread = threading.Thread(target=self._work, name="scan-engine", daemon=True)
             self._thread.start()
@@ -273,13 +269,6 @@ class IncrementalEngine:
         engine.version = int(meta["version"])
         engine.figures = dict(meta.get("figures", {}))
         return engine
-
-
-def _warm_up() -> None:
-    import reconstruct.networks
-    import reconstruct.pipeline  # noqa: F401  (and torch, onnxruntime)
-
-    reconstruct.networks.load_torch()
 
 
 def remesh(source, lam: float | None = None, depth: int | None = None):

@@ -67,13 +67,14 @@ class ClusterExecutor(concurrent.futures.Executor):
             raise ClusterError(f"Dask scheduler {address} unreachable: "
                                f"{_one_line(exc)}") from exc
         try:
-            self.n_workers = len(self.client.scheduler_info().get("workers", {}))
+            workers = self.client.scheduler_info().get("workers", {})
+            self.n_workers = len(workers)
             if self.n_workers == 0:
                 log.warning("Dask scheduler %s has no workers yet: fits wait for one", address)
             else:
                 log.info("Dask cluster %s: %d workers", address, self.n_workers)
             if warm_up:
-                for worker in self.client.scheduler_info().get("workers", {}):
+                for worker in workers:
                     distributed.fire_and_forget(self.client.submit(
                         warm_up_worker, workers=[worker], allow_other_workers=False,
                         pure=False))

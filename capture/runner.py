@@ -139,7 +139,7 @@ class ScanRunner(RunLifecycle):
     # -- preparation (before anything moves) ----------------------------------------------------
     def _prepare(self) -> None:
         camera_url, turntable_url, object, calibration, seed = self._station_args
-        recorded, self._announce_recorded = [], self.replay is not None
+        recorded = []
         if self.replay is not None:
             recorded = self.replay.views
             if self.station is None:
@@ -166,7 +166,7 @@ class ScanRunner(RunLifecycle):
         self._recorded = recorded
         self._pending = [] if self.replay is not None else \
             [i for i in range(self.plan.n_views) if i not in done]
-        self._views_done = 0 if self._announce_recorded else len(recorded)
+        self._views_done = 0 if self.replay is not None else len(recorded)
         self.processor = ViewProcessor(
             self.station.calibration, self.plan.volume, voxel_mm=self.plan.voxel_mm,
             outlier_neighbors=self.plan.outlier_neighbors, outlier_std=self.plan.outlier_std)
@@ -174,7 +174,7 @@ class ScanRunner(RunLifecycle):
             self.engine = IncrementalEngine(self.plan.reconstruction, on_mesh=self._on_mesh,
                                             workers=self.workers, total_views=self.plan.n_views,
                                             schedule=self.schedule, executor=self.executor)
-        unannounced = recorded and not self._announce_recorded
+        unannounced = recorded and self.replay is None
         self._writers.append(ScanReport(self.outputs, self.engine, started=self._started,
                                         image_shape=recorded[-1].frames[0].shape
                                         if unannounced else None))
@@ -201,7 +201,7 @@ class ScanRunner(RunLifecycle):
             self._emit(StartDocument, scan_id=self.scan_id, plan=self.plan.to_dict(),
                        calibration=json.loads(self.station.calibration.to_json()),
                        station=self.station.describe(), segment=self.segment,
-                       resumed_views=0 if self._announce_recorded else len(self._recorded))
+                       resumed_views=0 if self.replay is not None else len(self._recorded))
             self._feed_recorded()
             for index in self._pending:
                 measured, frames = self._capture_with_recovery(index)
@@ -227,7 +227,7 @@ class ScanRunner(RunLifecycle):
     def _feed_recorded(self) -> None:
         """The recorded views, in their order, through the per-view step: announced in a
         replay (which may be paused or cancelled between them), silently in a resume."""
-        announce = self._announce_recorded
+        announce = self.replay is not None
         for index, view in enumerate(self._recorded):
             if announce:
                 self._checkpoint(index)

@@ -209,17 +209,19 @@ class GrblTurntable(Turntable):
             self.emergency_stop()
             return
         self._count_stop()
-        status = self.status()
-        if status.moving or status.state == "Hold":
-            self.link.write(FEED_HOLD)
-            speed = (status.feed or self.max_rate) / 60.0
-            deadline = time.monotonic() + speed / self.acceleration * 1.5 + self.timeout
-            while (status := self.status()).moving:
-                if time.monotonic() >= deadline:
-                    raise DeviceTimeout(f"{self.port}: the feed hold did not complete "
-                                        f"({status.state}) within {self.timeout:g} s")
-                time.sleep(0.005)
-        self._reset_after_stop("stop")
+        try:
+            status = self.status()
+            if status.moving or status.state == "Hold":
+                self.link.write(FEED_HOLD)
+                speed = (status.feed or self.max_rate) / 60.0
+                deadline = time.monotonic() + speed / self.acceleration * 1.5 + self.timeout
+                while (status := self.status()).moving:
+                    if time.monotonic() >= deadline:
+                        raise DeviceTimeout(f"{self.port}: the feed hold did not complete "
+                                            f"({status.state}) within {self.timeout:g} s")
+                    time.sleep(0.005)
+        finally:  # a hold that failed still ends in the reset: a stop never leaves it moving
+            self._reset_after_stop("stop")
 
     def emergency_stop(self) -> None:
         """Soft reset (0x18) at once: no deceleration. If the table was moving GRBL raises

@@ -80,10 +80,6 @@ class GrblLink:
         self.critical = self.needs_resync = self.stopping = False
         self.failure: DeviceDisconnected | None = None
 
-    @property
-    def is_open(self) -> bool:
-        return self._serial is not None
-
     # ------------------------------------------------------------------ open, close
     def open(self) -> None:
         self.reset_state()

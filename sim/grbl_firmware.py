@@ -543,7 +543,6 @@ class GrblFirmware:
                 self._status_requested = False
                 self._write_status(self.motion.last_stop, "Home")
 
-        self._homing = True
         result = self._after_motion(line, now, action=finish)
         self._sync_waiting = False  # a reset aborts homing with ALARM:6, never an `ok`
         return result

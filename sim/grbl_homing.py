@@ -16,10 +16,9 @@ import math
 
 import numpy as np
 
+from drivers.grbl_protocol import HOMING_SEARCH_SCALAR
 from sim.grbl_motion import MotionModel
 
-SEARCH_SCALAR = 1.5  # HOMING_AXIS_SEARCH_SCALAR
-LOCATE_SCALAR = 5.0  # HOMING_AXIS_LOCATE_SCALAR
 STOCK_CYCLES = ("Z", "XY")
 
 
@@ -44,7 +43,7 @@ def plan_homing(motion: MotionModel, cycles, switches: str, now: float,
     for cycle in cycles:
         axes = ["XYZ".index(a) for a in cycle]
         direction = {i: -1.0 if int(s[23]) >> i & 1 else 1.0 for i in axes}
-        search = SEARCH_SCALAR * max(s[130 + i] for i in axes)
+        search = HOMING_SEARCH_SCALAR * max(s[130 + i] for i in axes)
         rate = math.sqrt(len(axes))
         to_switch = {i: (-(pos[i] + offset[i]) * direction[i]) % 360.0 for i in axes}
         found = all("XYZ"[i] in switches and to_switch[i] <= search for i in axes)

@@ -28,6 +28,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.concurrency import run_in_threadpool
 
 from . import downloads
 from .auth import BearerAuth, LoopbackHostGuard
@@ -317,7 +318,7 @@ def _api_router() -> APIRouter:
             if not (text.isascii() and text.isdigit() and int(text) <= MAX_COUNT):
                 raise InvalidRequest(f"Last-Event-ID must be a document id (0 to {MAX_COUNT})")
             after = max(after, int(text))
-        channel = jobs.channel(scan_id)
+        channel = await run_in_threadpool(jobs.channel, scan_id)  # takes the jobs lock
         heartbeat = request.app.state.heartbeat_s
 
         async def stream():

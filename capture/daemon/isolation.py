@@ -295,13 +295,13 @@ def folder_in_use(folder: Path) -> bool:
     except ImportError:
         return False
     try:
-        with open(Path(folder) / SCAN_LOCK, "a") as handle:
+        with open(Path(folder) / SCAN_LOCK) as handle:  # read-only: testing creates nothing
             try:
                 fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 return True
             fcntl.flock(handle, fcntl.LOCK_UN)
-    except OSError:  # no folder (yet): nobody holds it
+    except OSError:  # no lock file (yet): nobody holds it
         return False
     return False
 

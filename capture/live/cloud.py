@@ -60,12 +60,6 @@ class VoxelCloud:
         keep = self._counts >= min_views
         return self._sums[keep] / self._counts[keep, None]
 
-    def coverage(self, cell_mm: float | None = None, min_views: int = 1) -> int:
-        """Occupied cells of a coarser grid (default 2 voxels): a measure of surface seen."""
-        cell = cell_mm or 2 * self.voxel_mm
-        points = self.points(min_views)
-        return len(np.unique(voxel_keys(points, cell))) if len(points) else 0
-
     def state(self) -> dict[str, np.ndarray]:
         return {"keys": self._keys, "sums": self._sums, "counts": self._counts}
 

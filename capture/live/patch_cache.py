@@ -21,6 +21,7 @@ from reconstruct.networks import n_parameters
 from reconstruct.pipeline import SurfaceReconstructor
 
 from ..plan import ReconstructionParams
+from .cloud import voxel_keys
 from .patch_fit import fit_patch
 
 log = logging.getLogger(__name__)
@@ -64,7 +65,7 @@ def _digest(points: np.ndarray) -> str:
 
 def coverage_cells(points: np.ndarray, cell_mm: float) -> int:
     """Occupied cells of ``cell_mm`` among (n, 3) points: how much surface they cover."""
-    return len(np.unique(np.floor(points / cell_mm).astype(np.int64), axis=0))
+    return len(np.unique(voxel_keys(points, cell_mm))) if len(points) else 0
 
 
 class PatchCache:

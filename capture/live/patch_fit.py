@@ -65,7 +65,7 @@ def fit_fixed(points, layers, params: ReconstructionParams,
     """Embed (n, 3) points and train an MLP of hidden ``layers`` (no search); ``polish``: with
     the ``polish_*`` epochs, patience and samples."""
     training = _training(params, polish)
-    patience = training.pop("patience", 6)  # no search: its one patience is the final fits'
+    patience = training.pop("patience", FINAL_PATIENCE)  # one patience: the final fits'
     mlp = AdaptiveMLP(hidden_layers=tuple(layers), max_layers=len(layers),
                       max_neurons=max(layers), final_fit=FINAL_FIT, random_state=params.seed,
                       patience=patience, final_patience=patience, **training)

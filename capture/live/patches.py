@@ -63,7 +63,7 @@ class LivePatches:
         """Fit what needs fitting for (n, 3) object-frame points (on ``executor`` when given),
         then trim and merge the fits."""
         self._split_once(points)
-        points = self.split.check(points)
+        points = np.asarray(points, dtype=np.float64)  # (split_once checked them)
         cell = 2 * self.cache.params.voxel_mm
         present = [PatchPoints(patch.name, points[patch.mask],
                                coverage_cells(points[patch.mask], cell), patch.is_cap)

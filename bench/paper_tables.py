@@ -107,7 +107,8 @@ def main() -> None:
     print(f"\ntarget (lower than the paper on every row): {verdict}")
     mlp = AdaptiveMLP()
     print(f"training: the paper's search (85/10/5 split, ≤ 3 layers × 6 neurons) with our "
-          f"optimiser: full-batch L-BFGS (scipy's L-BFGS-B), ≤ {mlp.max_epochs} epochs of "
+          f"optimiser: full-batch L-BFGS (scipy's L-BFGS-B) of the hidden layers with the "
+          f"output layer solved by least squares, ≤ {mlp.max_epochs} epochs of "
           f"{mlp.steps_per_epoch} steps, early stop after {mlp.patience}, then "
           f"≤ {mlp.final_epochs} final epochs, early stop after {mlp.final_patience} "
           f"(the paper: 20 epochs, early stop 3); "

@@ -1,108 +1,184 @@
-"""Full-batch L-BFGS for a small torch net: torch gives the loss and gradient, scipy steps.
+"""Full-batch L-BFGS for a small MLP, optionally with its linear output layer solved exactly.
 
-scipy's compiled L-BFGS-B loop costs less per iteration than ``torch.optim.LBFGS`` on the
-adaptive search's tiny nets (measured when it came in: see the commit history), and it spares
-the import of ``torch._dynamo`` that torch's optimisers trigger on first use.
+``project_output=True`` is variable projection (Golub & Pereyra): for given hidden layers the
+output layer that fits best is a linear least-squares solution, so every evaluation solves it
+(normal equations of the last hidden layer's activations plus a bias column; a fixed ridge of
+1e-8 per sample keeps twin neurons solvable) and L-BFGS moves only the hidden weights. The
+gradient with respect to them is the plain back-propagated gradient at the solved output (the
+output's own gradient is zero there). ``False`` trains every layer together.
+
+The loss and gradient are written out (forward, then back-propagation through the activation's
+derivative) instead of taken from autograd: on these tiny nets the graph bookkeeping cost more
+than the arithmetic. scipy's compiled L-BFGS-B takes the steps.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .networks import load_torch, mse
+from .networks import linears, load_torch, mse
+
+RIDGE = 1e-8
 
 
-class FlatParameters:
-    """A net's parameters and gradients as views into two flat float64 buffers, so that
-    scipy reads and writes them without a copy per tensor. On exit every parameter gets its
-    own storage back and its gradient is dropped."""
+def _derivative(module):
+    """d activation / d pre-activation as a function of (z, h) for a hidden activation module."""
+    torch = load_torch()
+    return {
+        "Tanh": lambda z, h: 1.0 - h * h,
+        "Sigmoid": lambda z, h: h * (1.0 - h),
+        "ReLU": lambda z, h: (z > 0).to(z.dtype),
+        "ELU": lambda z, h: torch.where(z > 0, torch.ones_like(z), h + 1.0),
+        "Softplus": lambda z, h: torch.sigmoid(z),
+    }[type(module).__name__]
 
-    def __init__(self, net):
-        self.net = net
-        self.params = list(net.parameters())
 
-    def __enter__(self) -> FlatParameters:
+class FlatMLP:
+    """A Sequential MLP's weights as one flat float64 vector ``theta``: each layer's (in, out)
+    weight matrix then its bias, the output layer's last unless it is solved
+    (``project_output``) for the hidden ones."""
+
+    def __init__(self, net, project_output: bool):
         torch = load_torch()
-        total = sum(p.numel() for p in self.params)
-        values = torch.empty(total, dtype=torch.float64)
-        grads = torch.zeros(total, dtype=torch.float64)
-        offset = 0
-        with torch.no_grad():
-            for p in self.params:
-                k = p.numel()
-                values[offset : offset + k] = p.reshape(-1)
-                p.data = values[offset : offset + k].view_as(p)
-                p.grad = grads[offset : offset + k].view_as(p)
-                offset += k
-        self.values, self.grads = values.numpy(), grads.numpy()  # share the tensors' memory
-        return self
+        self.net, self.project_output = net, project_output
+        layers = linears(net)
+        self.hidden, self.output = layers[:-1], layers[-1]
+        self.trained = self.hidden if project_output else layers
+        activation = next(m for m in net if not isinstance(m, torch.nn.Linear))
+        self.activation, self.derivative = activation, _derivative(activation)
+        self.shapes = [(layer.in_features, layer.out_features) for layer in self.trained]
+        self.cached = None  # projected: (theta, output weights (w + 1, n_out)) last evaluated
 
-    def __exit__(self, *exc) -> None:
-        for p in self.params:
-            p.data = p.data.clone()
-            p.grad = None
+    def theta(self) -> np.ndarray:
+        parts = []
+        for layer in self.trained:
+            parts += [layer.weight.detach().T.reshape(-1), layer.bias.detach()]
+        return load_torch().cat(parts).numpy().copy()
 
-    def get(self) -> np.ndarray:
-        return self.values.copy()
+    def _unpack(self, theta) -> list:
+        """[(weight (in, out), bias (out,))] views of ``theta``, one per trained layer."""
+        values, out, offset = load_torch().from_numpy(theta), [], 0
+        for a, b in self.shapes:
+            out.append((values[offset : offset + a * b].view(a, b),
+                        values[offset + a * b : offset + a * b + b]))
+            offset += a * b + b
+        return out
 
-    def set(self, theta: np.ndarray) -> None:
-        self.values[:] = theta
+    def _hidden(self, params, x):
+        """Pre-activations and activations of the hidden layers: ([z…], [x, h…])."""
+        torch = load_torch()
+        zs, hs = [], [x]
+        for weight, bias in params[: len(self.hidden)]:
+            zs.append(torch.addmm(bias, hs[-1], weight))
+            hs.append(self.activation(zs[-1]))
+        return zs, hs
+
+    @staticmethod
+    def _solve_output(h, y):
+        """Least-squares output (w + 1, n_out) of activations h (n, w) for targets y, and the
+        ridge used."""
+        torch = load_torch()
+        a = torch.cat([h, torch.ones(len(h), 1, dtype=h.dtype)], 1)
+        gram = a.T @ a
+        ridge = RIDGE * len(h)  # fixed for given samples, so the gradient stays exact
+        gram.diagonal().add_(ridge)
+        return torch.linalg.solve(gram, a.T @ y), ridge
+
+    def _output(self, params, h, y):
+        """(output weights (w + 1, n_out), ridge) for the last activations h."""
+        if self.project_output:
+            return self._solve_output(h, y)
+        weight, bias = params[-1]
+        return load_torch().cat([weight, bias.unsqueeze(0)]), 0.0
 
     def loss_and_gradient(self, x, y):
-        """f(theta) → (mean squared error of net(x) against y, its gradient (p,))."""
+        """f(theta) → (MSE on (x, y), plus the ridge term when projected; its gradient)."""
         torch = load_torch()
 
         def evaluate(theta):
-            self.set(theta)
-            self.grads[:] = 0.0
-            loss = torch.nn.functional.mse_loss(self.net(x), y)
-            loss.backward()
-            value = loss.item()
-            if not np.isfinite(value):
-                return np.inf, np.zeros_like(self.grads)
-            return value, self.grads.copy()
+            params = self._unpack(theta)
+            with torch.no_grad():
+                zs, hs = self._hidden(params, x)
+                out, ridge = self._output(params, hs[-1], y)
+                residual = torch.addmm(out[-1], hs[-1], out[:-1]).sub_(y)
+                scale = 1.0 / residual.numel()
+                value = float((residual * residual).sum() + ridge * (out * out).sum()) * scale
+                if not np.isfinite(value):
+                    return np.inf, np.zeros_like(theta)
+                self.cached = (theta.copy(), out)
+                residual.mul_(2.0 * scale)
+                grads = [] if self.project_output else [
+                    residual.sum(0), (hs[-1].T @ residual).reshape(-1)]
+                delta = residual @ out[:-1].T  # d loss / d last activations
+                for i in range(len(zs) - 1, -1, -1):
+                    delta = delta * self.derivative(zs[i], hs[i + 1])
+                    grads += [delta.sum(0), (hs[i].T @ delta).reshape(-1)]
+                    if i:
+                        delta = delta @ params[i][0].T
+            return value, torch.cat(grads[::-1]).numpy()
 
         return evaluate
 
+    def output_for(self, theta, x, y):
+        """The output weights (w + 1, n_out) for ``theta`` (cached from the last evaluation)."""
+        if self.cached is not None and np.array_equal(self.cached[0], theta):
+            return self.cached[1]
+        params = self._unpack(theta)
+        with load_torch().no_grad():
+            return self._output(params, self._hidden(params, x)[1][-1], y)[0]
+
+    def set(self, theta, out) -> None:
+        """Copy ``theta`` and the output weights ``out`` (w + 1, n_out) into the net."""
+        with load_torch().no_grad():
+            for layer, (weight, bias) in zip(self.hidden, self._unpack(theta), strict=False):
+                layer.weight.copy_(weight.T)
+                layer.bias.copy_(bias)
+            self.output.weight.copy_(out[:-1].T)
+            self.output.bias.copy_(out[-1])
+
 
 def train_lbfgs(net, train, validation, max_epochs: int, steps_per_epoch: int,
-                patience: int) -> tuple[float, int]:
+                patience: int, project_output: bool = True) -> tuple[float, int]:
     """Train ``net`` in place on ``train`` = (x, y) tensors; one epoch is ``steps_per_epoch``
     iterations (curvature history kept across epochs). After each epoch the validation MSE is
     checked; training stops after ``patience`` epochs without improvement, and the net is left
     at its best validation weights. Returns (best validation MSE, epochs run)."""
     from scipy.optimize import minimize
 
-    with FlatParameters(net) as flat:
-        best = {"mse": mse(net, *validation), "theta": flat.get(), "stale": 0, "epochs": 0,
-                "iterations": 0}
+    x, y = train
+    flat = FlatMLP(net, project_output)
+    start = flat.theta()
+    flat.set(start, flat.output_for(start, x, y))
+    best = {"mse": mse(net, *validation), "theta": start, "out": flat.output_for(start, x, y),
+            "stale": 0, "epochs": 0, "iterations": 0}
 
-        def end_of_epoch(theta) -> bool:
-            """Score the epoch ending at theta; True when training should stop."""
-            best["epochs"] += 1
-            flat.set(theta)
-            val = mse(net, *validation)
-            if not np.isfinite(val):
-                return True
-            if val < best["mse"]:
-                best.update(mse=val, theta=theta.copy(), stale=0)
-                return False
-            best["stale"] += 1
-            return best["stale"] >= patience
+    def end_of_epoch(theta) -> bool:
+        """Score the epoch ending at theta; True when training should stop."""
+        best["epochs"] += 1
+        out = flat.output_for(theta, x, y)
+        flat.set(theta, out)
+        val = mse(net, *validation)
+        if not np.isfinite(val):
+            return True
+        if val < best["mse"]:
+            best.update(mse=val, theta=theta.copy(), out=out.clone(), stale=0)
+            return False
+        best["stale"] += 1
+        return best["stale"] >= patience
 
-        def end_of_iteration(intermediate_result):
-            best["iterations"] += 1
-            if best["iterations"] % steps_per_epoch == 0 and end_of_epoch(intermediate_result.x):
-                raise StopIteration
+    def end_of_iteration(intermediate_result):
+        best["iterations"] += 1
+        if best["iterations"] % steps_per_epoch == 0 and end_of_epoch(intermediate_result.x):
+            raise StopIteration
 
-        result = minimize(
-            flat.loss_and_gradient(*train), flat.get(), jac=True, method="L-BFGS-B",
-            callback=end_of_iteration,
-            options={"maxiter": max_epochs * steps_per_epoch,
-                     "maxfun": max_epochs * steps_per_epoch * 5 // 4,
-                     "maxcor": 20, "ftol": 1e-15, "gtol": 1e-10},
-        )
-        if best["iterations"] % steps_per_epoch:  # converged inside an epoch: score its end
-            end_of_epoch(result.x)
-        flat.set(best["theta"])
+    result = minimize(
+        flat.loss_and_gradient(x, y), start, jac=True, method="L-BFGS-B",
+        callback=end_of_iteration,
+        options={"maxiter": max_epochs * steps_per_epoch,
+                 "maxfun": max_epochs * steps_per_epoch * 5 // 4,
+                 "maxcor": 20, "ftol": 1e-15, "gtol": 1e-10},
+    )
+    if best["iterations"] % steps_per_epoch:  # converged inside an epoch: score its end
+        end_of_epoch(result.x)
+    flat.set(best["theta"], best["out"])
     return best["mse"], best["epochs"]

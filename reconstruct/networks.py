@@ -55,12 +55,10 @@ def linears(net):
 
 
 def widen(net, layers, activation, n_in, n_out, generator):
-    """``net`` plus one neuron in its last hidden layer, by splitting one (Net2WiderNet).
-
-    The busiest neuron (largest outgoing weights) is copied with a small perturbation of its
-    incoming weights and its outgoing weights are shared between the two: the function is kept
-    and the pair can then specialise where the map needs capacity.
-    """
+    """``net`` plus one neuron in its last hidden layer, initialised as in a new net, with zero
+    outgoing weights: the function is kept, and a projected fit (`lbfgs`) solves the new
+    neuron's output weights at its first evaluation, so the wider net starts at least as good
+    as the narrower one (least squares with one more column)."""
     torch = load_torch()
     wider = build(layers, activation, n_in, n_out, generator)
     old, new = linears(net), linears(wider)
@@ -68,19 +66,12 @@ def widen(net, layers, activation, n_in, n_out, generator):
         for a, b in zip(old[:-2], new[:-2], strict=True):  # earlier layers: unchanged
             b.weight.copy_(a.weight)
             b.bias.copy_(a.bias)
-        grown, out_old, out_new = old[-2], old[-1], new[-1]
-        k = grown.out_features
-        j = int(torch.argmax(out_old.weight.abs().sum(0)))
-        noise = 0.05 * grown.weight[j].abs().mean() + 1e-3
-        new[-2].weight[:k] = grown.weight
-        new[-2].bias[:k] = grown.bias
-        new[-2].weight[k] = grown.weight[j] + noise * torch.randn(
-            grown.in_features, generator=generator, dtype=grown.weight.dtype)
-        new[-2].bias[k] = grown.bias[j]
-        out_new.weight[:, :k] = out_old.weight
-        out_new.weight[:, j] *= 0.5
-        out_new.weight[:, k] = out_new.weight[:, j]
-        out_new.bias.copy_(out_old.bias)
+        k = old[-2].out_features
+        new[-2].weight[:k] = old[-2].weight
+        new[-2].bias[:k] = old[-2].bias
+        new[-1].weight.zero_()
+        new[-1].weight[:, :k] = old[-1].weight
+        new[-1].bias.copy_(old[-1].bias)
     return wider
 
 
@@ -95,28 +86,28 @@ def deepen(net, layers, activation, n_in, n_out, generator):
     return deeper
 
 
-def mean_of(first, second):
-    """One MLP computing the mean of two of the same architecture: their hidden layers side by
-    side (block-diagonal weights), the output layer halved. A plain ``Sequential``, so it
-    trains, pickles and exports like any other net."""
+def mean_of(*nets):
+    """One MLP computing the mean of nets of the same architecture: their hidden layers side by
+    side (block-diagonal weights), the output layer divided by their number. A plain
+    ``Sequential``, so it trains, pickles and exports like any other net."""
     torch = load_torch()
     modules = []
-    pairs = list(zip(first, second, strict=True))
-    linear_ids = [i for i, (m, _) in enumerate(pairs) if isinstance(m, torch.nn.Linear)]
+    groups = list(zip(*nets, strict=True))
+    linear_ids = [i for i, group in enumerate(groups) if isinstance(group[0], torch.nn.Linear)]
     with torch.no_grad():
-        for i, (a, b) in enumerate(pairs):
-            if not isinstance(a, torch.nn.Linear):
-                modules.append(copy.deepcopy(a))
+        for i, group in enumerate(groups):
+            if not isinstance(group[0], torch.nn.Linear):
+                modules.append(copy.deepcopy(group[0]))
                 continue
             if i == linear_ids[0]:
-                weight = torch.cat([a.weight, b.weight])
-                bias = torch.cat([a.bias, b.bias])
+                weight = torch.cat([m.weight for m in group])
+                bias = torch.cat([m.bias for m in group])
             elif i == linear_ids[-1]:
-                weight = 0.5 * torch.cat([a.weight, b.weight], dim=1)
-                bias = 0.5 * (a.bias + b.bias)
+                weight = torch.cat([m.weight for m in group], dim=1) / len(group)
+                bias = sum(m.bias for m in group) / len(group)
             else:
-                weight = torch.block_diag(a.weight, b.weight)
-                bias = torch.cat([a.bias, b.bias])
+                weight = torch.block_diag(*(m.weight for m in group))
+                bias = torch.cat([m.bias for m in group])
             layer = torch.nn.Linear(weight.shape[1], weight.shape[0]).double()
             layer.weight.copy_(weight)
             layer.bias.copy_(bias)

@@ -91,15 +91,15 @@ def test_retrain_on_all_data_is_recorded():
     assert tuple(widths) == model.hidden_layers_  # one retrained net, not a mean
 
 
-def test_the_chosen_net_is_the_mean_of_its_two_final_fits_when_they_agree(fitted):
+def test_the_chosen_net_is_the_mean_of_its_final_fits_that_agree(fitted):
     from reconstruct.mlp import MEAN_GUARD
 
     model, _, _ = fitted
     finals = [h for h in model.history_ if "final" in h]
-    assert [h["final"] for h in finals] == ["warm", "fresh"]
-    errors = sorted(h["weighted_mse"] for h in finals)
+    assert [h["final"] for h in finals] == ["warm"] + ["fresh"] * model.final_starts
+    errors = [h["weighted_mse"] for h in finals]
     widths = [m.out_features for m in model.torch_model_ if hasattr(m, "out_features")][:-1]
-    factor = 2 if errors[1] <= MEAN_GUARD * errors[0] else 1
+    factor = sum(e <= MEAN_GUARD * min(errors) for e in errors)
     assert tuple(widths) == tuple(factor * w for w in model.hidden_layers_)
 
 
@@ -194,13 +194,15 @@ def test_the_final_net_is_the_mean_of_two_fits_as_one_mlp(layers):
     from reconstruct.networks import mean_of as _mean_of
 
     generator = torch.Generator().manual_seed(0)
-    a, b = (_build(layers, "tanh", 2, 3, generator) for _ in range(2))
-    merged = _mean_of(a, b)
+    a, b, c = (_build(layers, "tanh", 2, 3, generator) for _ in range(3))
     x = torch.from_numpy(np.random.default_rng(0).normal(size=(50, 2)))
-    with torch.no_grad():
-        np.testing.assert_allclose(merged(x), 0.5 * (a(x) + b(x)), rtol=1e-12, atol=1e-12)
-    widths = [m.out_features for m in merged if isinstance(m, torch.nn.Linear)]
-    assert widths == [2 * w for w in layers] + [3]
+    for nets in ((a, b), (a, b, c)):
+        merged = _mean_of(*nets)
+        with torch.no_grad():
+            np.testing.assert_allclose(merged(x), sum(n(x) for n in nets) / len(nets),
+                                       rtol=1e-12, atol=1e-12)
+        widths = [m.out_features for m in merged if isinstance(m, torch.nn.Linear)]
+        assert widths == [len(nets) * w for w in layers] + [3]
 
 
 def test_final_fit_better_keeps_one_net_and_bad_values_are_refused():
@@ -213,9 +215,9 @@ def test_final_fit_better_keeps_one_net_and_bad_values_are_refused():
 
 
 @pytest.mark.parametrize(("fresh_factor", "mean_kept"), [(1.02, True), (1.5, False)])
-def test_the_mean_is_kept_only_while_the_two_final_fits_agree(monkeypatch, fresh_factor,
-                                                              mean_kept):
-    """A final fit whose weighted error is over 5 % above the other's stalled: keep the other."""
+def test_the_mean_is_kept_only_while_the_final_fits_agree(monkeypatch, fresh_factor,
+                                                          mean_kept):
+    """A final fit whose weighted error is over 5 % above the best one's stalled: left out."""
     import reconstruct.mlp as mlp_module
 
     train = mlp_module.AdaptiveMLP._train
@@ -234,7 +236,7 @@ def test_the_mean_is_kept_only_while_the_two_final_fits_agree(monkeypatch, fresh
     uv, xyz = paraboloid(300)
     model = AdaptiveMLP(random_state=0, **SMALL).fit(uv, xyz)
     widths = [m.out_features for m in model.torch_model_ if hasattr(m, "out_features")][:-1]
-    factor = 2 if mean_kept else 1
+    factor = 1 + model.final_starts if mean_kept else 1
     assert tuple(widths) == tuple(factor * w for w in model.hidden_layers_)
 
 

@@ -26,6 +26,8 @@ log = logging.getLogger(__name__)
 #: is fine-tuned again after more views, and the mean is twice as wide (faster, measured on
 #: bench/scan.py).
 FINAL_FIT = "better"
+#: ... of two trainings (its searched weights and one fresh start), not the pipeline's three.
+FINAL_STARTS = 1
 #: ... and stops those trainings after 6 flat epochs, the search's patience (bench/scan.py ran
 #: within its time budget with 6; the pipeline's 10 was not measured there).
 FINAL_PATIENCE = 6
@@ -47,7 +49,7 @@ def fit_fresh(points, params: ReconstructionParams) -> SurfaceReconstructor:
         max_layers=params.max_layers, max_neurons=params.max_neurons,
         max_epochs=params.max_epochs, final_epochs=params.final_epochs,
         max_train_points=params.max_train_points, final_fit=FINAL_FIT,
-        final_patience=FINAL_PATIENCE, random_state=params.seed,
+        final_starts=FINAL_STARTS, final_patience=FINAL_PATIENCE, random_state=params.seed,
     )
     return _reconstructor(params, mlp).fit(points)
 
@@ -67,7 +69,8 @@ def fit_fixed(points, layers, params: ReconstructionParams,
     training = _training(params, polish)
     patience = training.pop("patience", FINAL_PATIENCE)  # one patience: the final fits'
     mlp = AdaptiveMLP(hidden_layers=tuple(layers), max_layers=len(layers),
-                      max_neurons=max(layers), final_fit=FINAL_FIT, random_state=params.seed,
+                      max_neurons=max(layers), final_fit=FINAL_FIT, final_starts=FINAL_STARTS,
+                      random_state=params.seed,
                       patience=patience, final_patience=patience, **training)
     return _reconstructor(params, mlp).fit(points)
 

@@ -1,0 +1,69 @@
+"""The written-out loss gradients of `reconstruct.lbfgs` and its solved output layer."""
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from reconstruct.lbfgs import FlatMLP, train_lbfgs  # noqa: E402
+from reconstruct.mlp import ACTIVATIONS  # noqa: E402
+from reconstruct.networks import build, mse  # noqa: E402
+
+
+def samples(n=300, seed=0):
+    generator = torch.Generator().manual_seed(seed)
+    x = torch.randn(n, 2, dtype=torch.float64, generator=generator)
+    y = torch.stack([torch.sin(2 * x[:, 0]), x[:, 0] * x[:, 1], torch.cos(x[:, 1])], 1)
+    return x, y + 0.01 * torch.randn(n, 3, dtype=torch.float64, generator=generator)
+
+
+@pytest.mark.parametrize("project_output", [True, False])
+@pytest.mark.parametrize("activation", ACTIVATIONS)
+@pytest.mark.parametrize("layers", [(4,), (3, 5)])
+def test_gradient_matches_central_differences(project_output, activation, layers):
+    x, y = samples()
+    net = build(layers, activation, 2, 3, torch.Generator().manual_seed(1))
+    flat = FlatMLP(net, project_output)
+    theta = flat.theta()
+    evaluate = flat.loss_and_gradient(x, y)
+    _, gradient = evaluate(theta)
+    numeric = np.empty_like(theta)
+    for i in range(len(theta)):
+        step = np.zeros_like(theta)
+        step[i] = 1e-5
+        numeric[i] = (evaluate(theta + step)[0] - evaluate(theta - step)[0]) / 2e-5
+    assert np.abs(numeric - gradient).max() <= 1e-6 * np.abs(gradient).max()
+
+
+def test_joint_loss_is_the_nets_own_mse():
+    x, y = samples()
+    net = build((6,), "tanh", 2, 3, torch.Generator().manual_seed(2))
+    value, _ = FlatMLP(net, project_output=False).loss_and_gradient(x, y)(
+        FlatMLP(net, False).theta())
+    assert value == pytest.approx(mse(net, x, y), rel=1e-12)
+
+
+def test_projected_output_is_the_least_squares_fit_of_the_hidden_layer():
+    x, y = samples()
+    net = build((8,), "tanh", 2, 3, torch.Generator().manual_seed(3))
+    flat = FlatMLP(net, project_output=True)
+    theta = flat.theta()
+    flat.set(theta, flat.output_for(theta, x, y))
+    with torch.no_grad():
+        hidden = torch.cat([net[1](net[0](x)), torch.ones(len(x), 1, dtype=x.dtype)], 1)
+        best = torch.linalg.lstsq(hidden, y).solution
+        least = float(((hidden @ best - y) ** 2).mean())
+    assert mse(net, x, y) == pytest.approx(least, rel=1e-6)
+
+
+@pytest.mark.parametrize("project_output", [True, False])
+def test_training_lowers_the_error_and_keeps_the_best_validation_weights(project_output):
+    x, y = samples(400)
+    train, validation = (x[:340], y[:340]), (x[340:], y[340:])
+    net = build((10,), "tanh", 2, 3, torch.Generator().manual_seed(4))
+    before = mse(net, *validation)
+    best, epochs = train_lbfgs(net, train, validation, max_epochs=30, steps_per_epoch=5,
+                               patience=4, project_output=project_output)
+    assert best == pytest.approx(mse(net, *validation), rel=1e-12)  # left at its best weights
+    assert best < 0.2 * before
+    assert 1 <= epochs <= 30

@@ -19,6 +19,12 @@ import numpy as np
 from .networks import linears, load_torch, mse
 
 RIDGE = 1e-8
+#: Relative drop of the validation error that counts as progress for early stopping. The
+#: held-out error of a fit near convergence is mostly the noise and creeps down by less than
+#: this for hundreds of iterations (the best weights are still kept). Measured at 20,000
+#: points σ 1 % (bench/quality.py's S-curve, saddle, half torus): final fits 2–5× shorter and
+#: Chamfer-L1 0.00472 → 0.00417, 0.00111 → 0.00101, 0.00389 → 0.00373.
+MIN_GAIN = 1e-3
 
 
 def _derivative(module):
@@ -141,7 +147,8 @@ def train_lbfgs(net, train, validation, max_epochs: int, steps_per_epoch: int,
                 patience: int, project_output: bool = True) -> tuple[float, int]:
     """Train ``net`` in place on ``train`` = (x, y) tensors; one epoch is ``steps_per_epoch``
     iterations (curvature history kept across epochs). After each epoch the validation MSE is
-    checked; training stops after ``patience`` epochs without improvement, and the net is left
+    checked; training stops after ``patience`` epochs without an improvement of ``MIN_GAIN``
+(relative), and the net is left
     at its best validation weights. Returns (best validation MSE, epochs run)."""
     from scipy.optimize import minimize
 
@@ -160,10 +167,10 @@ def train_lbfgs(net, train, validation, max_epochs: int, steps_per_epoch: int,
         val = mse(net, *validation)
         if not np.isfinite(val):
             return True
+        significant = val < best["mse"] * (1.0 - MIN_GAIN)
         if val < best["mse"]:
-            best.update(mse=val, theta=theta.copy(), out=out.clone(), stale=0)
-            return False
-        best["stale"] += 1
+            best.update(mse=val, theta=theta.copy(), out=out.clone())
+        best["stale"] = 0 if significant else best["stale"] + 1
         return best["stale"] >= patience
 
     def end_of_iteration(intermediate_result):

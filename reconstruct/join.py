@@ -1,0 +1,126 @@
+"""Join the charts of an atlas into one mesh: orient them alike, then extract one surface
+through their samples.
+
+The charts' meshes overlap by their rings; trimmed to a partition of the cloud (`chart_samples`)
+their vertices are samples of the fitted networks' surfaces, each with its mesh normal.
+`orient_charts` makes the normals agree across charts: neighbouring charts compare their normals
+at the points they share and a maximum spanning tree of that agreement propagates the flips
+(Hoppe et al. 1992 propagate over points; here over charts, whose insides are already
+consistent). `implicit_mesh` evaluates an implicit moving-least-squares distance (Kolluri 2005:
+the Gaussian-weighted mean of the signed distances to the nearest samples' tangent planes) on a
+voxel grid near the samples and extracts its zero level with scikit-image's marching cubes:
+closed where the samples close, and faces farther than ``trim`` voxels from every sample
+dropped, so borders and holes wider than a few spacings stay open.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+from scipy.spatial import cKDTree
+
+_IMLS_NEIGHBOURS = 8
+
+
+def chart_samples(meshes, labels, points):
+    """Samples of each chart's surface inside its own part of the cloud.
+
+    meshes : list of trimesh.Trimesh, one per chart; labels : (n,) chart of each input point
+    (−1: none); points : (n, 3). Returns (list of (v_i,) vertex indices kept per chart)."""
+    charted = labels >= 0
+    tree = cKDTree(points[charted])
+    owner = labels[charted]
+    kept = []
+    for index, mesh in enumerate(meshes):
+        nearest = tree.query(mesh.vertices)[1]
+        kept.append(np.flatnonzero(owner[nearest] == index))
+    return kept
+
+
+def orient_charts(meshes, charts, points) -> np.ndarray:
+    """Signs (c,) ±1 making the charts' normals agree where they overlap.
+
+    meshes : c fitted chart meshes; charts : c index arrays into points (n, 3), the points each
+    chart was fitted to (core and ring)."""
+    n_charts = len(meshes)
+    normal_at = np.zeros((n_charts, len(points), 3))
+    for index, (mesh, members) in enumerate(zip(meshes, charts, strict=True)):
+        nearest = cKDTree(mesh.vertices).query(points[members])[1]
+        normal_at[index, members] = mesh.vertex_normals[nearest]
+    rows, cols, agreement = [], [], []
+    for a in range(n_charts):
+        for b in range(a + 1, n_charts):
+            shared = np.intersect1d(charts[a], charts[b], assume_unique=True)
+            if len(shared) == 0:
+                continue
+            na, nb = normal_at[a, shared], normal_at[b, shared]
+            rows.append(a)
+            cols.append(b)
+            agreement.append(float(np.einsum("ij,ij->", na, nb)))
+    signs = np.ones(n_charts)
+    if not rows:
+        return signs
+    agreement = np.array(agreement)
+    # maximum spanning tree of |agreement| (minimum of its inverse)
+    weight = 1.0 / (np.abs(agreement) + 1e-9)
+    tree = minimum_spanning_tree(coo_matrix((weight, (rows, cols)), shape=(n_charts,) * 2))
+    tree = tree + tree.T
+    sign_of = {}
+    for a, b, s in zip(rows, cols, np.sign(agreement), strict=True):
+        sign_of[(a, b)] = sign_of[(b, a)] = s if s != 0 else 1.0
+    done = np.zeros(n_charts, bool)
+    for root in np.argsort([-len(c) for c in charts]):
+        if done[root]:
+            continue
+        order, parent = breadth_first_order(tree, root, directed=False)
+        for node in order[1:]:
+            signs[node] = signs[parent[node]] * sign_of[(parent[node], node)]
+        done[order] = True
+    return signs
+
+
+def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float = 1.5,
+                  min_share: float = 0.005) -> trimesh.Trimesh:
+    """One mesh through oriented samples (m, 3) with unit normals (m, 3).
+
+    voxel : grid spacing; band : the surface is sought within ``band`` voxels of a sample;
+    trim : faces farther than ``trim`` voxels from every sample are dropped (holes stay open);
+    min_share : pieces with fewer faces than this share of the largest are dropped."""
+    from skimage.measure import marching_cubes  # scikit-image: only on the joining path
+
+    samples = np.asarray(samples, float)
+    normals = np.asarray(normals, float)
+    pad = band + 2
+    origin = samples.min(axis=0) - pad * voxel
+    shape = np.ceil((samples.max(axis=0) + pad * voxel - origin) / voxel).astype(int) + 1
+    axes = [origin[i] + voxel * np.arange(shape[i]) for i in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    tree = cKDTree(samples)
+    distance, nearest = tree.query(grid, distance_upper_bound=(band + 1) * voxel)
+    near = np.isfinite(distance)
+    values = np.full(len(grid), voxel * (band + 1))
+    k = min(_IMLS_NEIGHBOURS, len(samples))
+    d, index = tree.query(grid[near], k=k)
+    offsets = np.einsum("gki,gki->gk", grid[near][:, None, :] - samples[index], normals[index])
+    weights = np.exp(-(d / (1.5 * voxel)) ** 2)
+    values[near] = (weights * offsets).sum(axis=1) / np.maximum(weights.sum(axis=1), 1e-300)
+    # far from the samples: the side the nearest sample's plane puts the node on
+    values = values.reshape(shape)
+    mask = (distance <= band * voxel).reshape(shape)
+    vertices, faces, _, _ = marching_cubes(values, level=0.0, spacing=(voxel,) * 3, mask=mask,
+                                           gradient_direction="ascent", allow_degenerate=False)
+    mesh = trimesh.Trimesh(vertices + origin, faces, process=True)
+    if len(mesh.faces) == 0:
+        return mesh
+    far = tree.query(mesh.triangles_center)[0] > trim * voxel
+    mesh.update_faces(~far)
+    mesh.remove_unreferenced_vertices()
+    pieces = mesh.split(only_watertight=False)
+    if len(pieces) > 1:
+        largest = max(len(p.faces) for p in pieces)
+        mesh = trimesh.util.concatenate([p for p in pieces if len(p.faces) >= min_share * largest])
+    if mesh.is_watertight and mesh.volume < 0:
+        mesh.invert()
+    return mesh

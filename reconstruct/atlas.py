@@ -58,6 +58,8 @@ class AtlasReconstructor(BaseEstimator):
     max_splits : how often an unfaithful chart may be split again.
     voxel : grid spacing of the join, in median point spacings (mean distance to 12 nearest).
     band, trim : `implicit_mesh` band and trim, in voxels.
+    reach : chart samples farther than this from every point (in median spacings) are dropped,
+        so a hole inside a chart's outline stays a hole.
     graph : an unfitted `SheetGraph` (its parameters); None: the defaults.
     random_state : seed (same seed, same mesh).
 
@@ -70,7 +72,7 @@ class AtlasReconstructor(BaseEstimator):
 
     def __init__(self, chart_size: int = 2500, overlap: float = 4.0, lam: float = 1.0,
                  depth: int = 2, reuse_layers: bool = True, max_splits: int = 2,
-                 voxel: float = 0.5, band: float = 3.0, trim: float = 1.5,
+                 voxel: float = 0.5, band: float = 3.0, trim: float = 1.5, reach: float = 2.0,
                  graph: SheetGraph | None = None, random_state: int | None = 0):
         self.chart_size = chart_size
         self.overlap = overlap
@@ -81,6 +83,7 @@ class AtlasReconstructor(BaseEstimator):
         self.voxel = voxel
         self.band = band
         self.trim = trim
+        self.reach = reach
         self.graph = graph
         self.random_state = random_state
 
@@ -163,7 +166,8 @@ class AtlasReconstructor(BaseEstimator):
         labels[~np.isin(labels, self._chart_ids)] = -1
         remap = {old: new for new, old in enumerate(self._chart_ids)}
         labels = np.array([remap.get(int(label), -1) for label in labels])
-        kept = chart_samples(meshes, labels, self.points_)
+        kept = chart_samples(meshes, labels, self.points_,
+                             reach=self.reach * self.decomposition_.spacing_)
         samples = np.concatenate([m.vertices[k] for m, k in zip(meshes, kept, strict=True)])
         normals = np.concatenate([s * m.vertex_normals[k]
                                   for m, k, s in zip(meshes, kept, self.signs_, strict=True)])

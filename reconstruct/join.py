@@ -24,18 +24,20 @@ from scipy.spatial import cKDTree
 _IMLS_NEIGHBOURS = 8
 
 
-def chart_samples(meshes, labels, points):
+def chart_samples(meshes, labels, points, reach: float = np.inf):
     """Samples of each chart's surface inside its own part of the cloud.
 
     meshes : list of trimesh.Trimesh, one per chart; labels : (n,) chart of each input point
-    (−1: none); points : (n, 3). Returns (list of (v_i,) vertex indices kept per chart)."""
+    (−1: none); points : (n, 3); reach : vertices farther than this from every input point are
+    dropped (a chart's spline outline encloses the holes inside it; its mesh spans them).
+    Returns a list of (v_i,) vertex indices kept per chart."""
     charted = labels >= 0
     tree = cKDTree(points[charted])
     owner = labels[charted]
     kept = []
     for index, mesh in enumerate(meshes):
-        nearest = tree.query(mesh.vertices)[1]
-        kept.append(np.flatnonzero(owner[nearest] == index))
+        distance, nearest = tree.query(mesh.vertices)
+        kept.append(np.flatnonzero((owner[nearest] == index) & (distance <= reach)))
     return kept
 
 

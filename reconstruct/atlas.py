@@ -138,7 +138,8 @@ class AtlasReconstructor(BaseEstimator):
         from .mlp import AdaptiveMLP
         from .pipeline import SurfaceReconstructor
 
-        params = dict(lam=self.lam, depth=self.depth, random_state=self.random_state)
+        params = dict(lam=self.lam, depth=self.depth, random_state=self.random_state,
+                      atlas="never")
         if first is not None and self.reuse_layers:
             params.update(n_neighbors=first.n_neighbors_, mlp=AdaptiveMLP(
                 hidden_layers=first.hidden_layers_, random_state=self.random_state))
@@ -185,8 +186,14 @@ class AtlasReconstructor(BaseEstimator):
         if not hasattr(self, "charts_"):
             raise NotFittedError("fit() the atlas first")
         started = time.perf_counter()
-        for chart in self.charts_:
-            chart.remesh(**params)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", ReconstructionWarning)
+            for chart in self.charts_:
+                chart.remesh(**params)
+        said = [w for w in caught if issubclass(w.category, ReconstructionWarning)]
+        if said:  # one line for the atlas, not one per chart
+            warnings.warn(f"{len(said)} of {len(self.charts_)} charts: {said[0].message}",
+                          ReconstructionWarning, stacklevel=2)
         self.timings_["remesh charts"] = time.perf_counter() - started
         self._join()
         self.timings_["remesh"] = time.perf_counter() - started

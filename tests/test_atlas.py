@@ -1,14 +1,17 @@
 """An atlas of charts fitted by the paper's method gives one mesh: closed where the cloud is
 closed, open at borders and holes (reconstruct.atlas, reconstruct.join)."""
 
+import warnings
+
 import numpy as np
 import pytest
 import trimesh
 
 from reconstruct.atlas import AtlasReconstructor, fold_share
-from reconstruct.errors import NotFittedError
+from reconstruct.errors import InvalidInputError, NotFittedError, ReconstructionWarning
 from reconstruct.join import implicit_mesh
 from reconstruct.metrics import surface_report
+from reconstruct.pipeline import SurfaceReconstructor
 
 
 def sphere_cloud(n=3000, sigma=0.005, seed=0):
@@ -93,3 +96,26 @@ def test_implicit_mesh_closes_oriented_samples_of_a_sphere():
 def test_remesh_before_fit_is_refused():
     with pytest.raises(NotFittedError):
         AtlasReconstructor().remesh(lam=2.0)
+
+
+def test_the_reconstructor_fits_an_atlas_for_a_closed_cloud_by_itself():
+    points = sphere_cloud(1500, sigma=0.01)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ReconstructionWarning)
+        model = SurfaceReconstructor(max_layers=1, max_neurons=8).fit(points)
+    assert "residual variance" in model.atlas_reason_
+    assert model.mesh_.is_watertight and model.mesh_.euler_number == 2
+    assert model.unexplained_ <= 0.05
+    assert not hasattr(model, "surface_map_")
+    remeshed = model.remesh(lam=2.0)
+    assert remeshed is model.mesh_ and model.lam == 2.0 and remeshed.is_watertight
+    with pytest.raises(InvalidInputError, match="atlas"):
+        model.save("unused.npz")
+    with pytest.raises(InvalidInputError, match="depth"):
+        model.remesh(depth=0)
+    assert model.depth == 2  # a refused value changes nothing
+
+
+def test_a_wrong_atlas_mode_is_refused():
+    with pytest.raises(InvalidInputError, match="atlas"):
+        SurfaceReconstructor(atlas="sometimes").fit(sphere_cloud(200))

@@ -57,7 +57,9 @@ class AtlasReconstructor(BaseEstimator):
     reuse_layers : later charts train the first chart's searched layer widths (no search).
     max_splits : how often an unfaithful chart may be split again.
     voxel : grid spacing of the join, in median point spacings (mean distance to 12 nearest).
-    band, trim : `implicit_mesh` band and trim, in voxels.
+    band, trim : `implicit_mesh` band and trim (from the chart samples), in voxels. Trimming
+        from the input points instead closed no more holes on the 5k hook and lost accuracy
+        (denoise 0.96 against 0.70).
     reach : chart samples farther than this from every point (in median spacings) are dropped,
         so a hole inside a chart's outline stays a hole.
     graph : an unfitted `SheetGraph` (its parameters); None: the defaults.

@@ -142,7 +142,7 @@ class ChartDecomposition(BaseEstimator):
             n_seeds = int(np.ceil(len(members) / self.chart_size))
             seeds = geodesic_seeds(adjacency, members, n_seeds, self.random_state)
             cores += voronoi_cells(adjacency, members, seeds)
-        cores = self._within_cone(cores)
+        cores = self._merged_small(self._within_cone(cores), len(points))
         if not cores:
             raise DegenerateCloudError(
                 f"no piece of the neighbourhood graph has {self.min_points} points: "
@@ -180,6 +180,26 @@ class ChartDecomposition(BaseEstimator):
                 continue
             todo += cells
         return done
+
+    def _merged_small(self, cores: list[np.ndarray], n: int) -> list[np.ndarray]:
+        """Cores under 1/25 of ``chart_size`` (slivers the cone split leaves at edges and
+        corners; a network fitted to a few dozen points folds) join the neighbouring core they
+        share most graph edges with."""
+        smallest = max(self.min_points, self.chart_size // 25)
+        labels = np.full(n, -1)
+        for index, core in enumerate(cores):
+            labels[core] = index
+        edges = self.graph_.graph_.tocoo()
+        for index in np.argsort([len(c) for c in cores]):
+            core = np.flatnonzero(labels == index)
+            if len(core) == 0 or len(core) >= smallest:
+                continue
+            touching = labels[edges.col[np.isin(edges.row, core)]]
+            touching = touching[(touching >= 0) & (touching != index)]
+            if len(touching):
+                labels[core] = np.bincount(touching).argmax()
+        merged = [np.flatnonzero(labels == index) for index in range(len(cores))]
+        return [core for core in merged if len(core)]
 
     @property
     def n_charts_(self) -> int:

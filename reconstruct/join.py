@@ -84,11 +84,13 @@ def orient_charts(meshes, charts, points) -> np.ndarray:
 
 
 def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float = 1.5,
-                  min_share: float = 0.005) -> trimesh.Trimesh:
+                  min_share: float = 0.005, data=None) -> trimesh.Trimesh:
     """One mesh through oriented samples (m, 3) with unit normals (m, 3).
 
     voxel : grid spacing; band : the surface is sought within ``band`` voxels of a sample;
-    trim : faces farther than ``trim`` voxels from every sample are dropped (holes stay open);
+    trim : faces farther than ``trim`` voxels from every point of ``data`` (p, 3; default the
+    samples) are dropped, so holes in the data stay open while gaps between the samples
+    where data exists (a sharp edge no chart reached) are closed;
     min_share : pieces with fewer faces than this share of the largest are dropped."""
     from skimage.measure import marching_cubes  # scikit-image: only on the joining path
 
@@ -116,7 +118,8 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     mesh = trimesh.Trimesh(vertices + origin, faces, process=True)
     if len(mesh.faces) == 0:
         return mesh
-    far = tree.query(mesh.triangles_center)[0] > trim * voxel
+    near_tree = tree if data is None else cKDTree(np.asarray(data, float))
+    far = near_tree.query(mesh.triangles_center)[0] > trim * voxel
     mesh.update_faces(~far)
     mesh.remove_unreferenced_vertices()
     pieces = mesh.split(only_watertight=False)

@@ -176,7 +176,7 @@ class AtlasReconstructor(BaseEstimator):
                                   for m, k, s in zip(meshes, kept, self.signs_, strict=True)])
         voxel = self.voxel * self.decomposition_.spacing_
         self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim)
-        self.samples_ = samples
+        self.samples_, self.normals_ = samples, normals
         self.watertight_ = bool(self.mesh_.is_watertight)
         self.winding_consistent_ = bool(self.mesh_.is_winding_consistent)
         self.euler_ = int(self.mesh_.euler_number)

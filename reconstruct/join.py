@@ -84,14 +84,16 @@ def orient_charts(meshes, charts, points) -> np.ndarray:
 
 
 def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float = 1.5,
-                  min_share: float = 0.005, data=None) -> trimesh.Trimesh:
+                  min_share: float = 0.005, data=None, hole: float = 12.0) -> trimesh.Trimesh:
     """One mesh through oriented samples (m, 3) with unit normals (m, 3).
 
     voxel : grid spacing; band : the surface is sought within ``band`` voxels of a sample;
     trim : faces farther than ``trim`` voxels from every point of ``data`` (p, 3; default the
     samples) are dropped, so holes in the data stay open while gaps between the samples
     where data exists (a sharp edge no chart reached) are closed;
-    min_share : pieces with fewer faces than this share of the largest are dropped."""
+    min_share : pieces with fewer faces than this share of the largest are dropped;
+    hole : border loops shorter than ``hole`` voxels are capped (`close_small_holes`): pinholes
+    where no chart's samples reached, not holes in the data (12 voxels: under 4 across)."""
     from skimage.measure import marching_cubes  # scikit-image: only on the joining path
 
     samples = np.asarray(samples, float)
@@ -126,6 +128,65 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     if len(pieces) > 1:
         largest = max(len(p.faces) for p in pieces)
         mesh = trimesh.util.concatenate([p for p in pieces if len(p.faces) >= min_share * largest])
+    mesh = close_small_holes(mesh, max_length=hole * voxel)
     if mesh.is_watertight and mesh.volume < 0:
         mesh.invert()
     return mesh
+
+
+def border_loops(faces: np.ndarray) -> list[np.ndarray]:
+    """Closed loops (vertex indices, in the faces' direction) of the edges of ``faces`` (f, 3)
+    that belong to one face only. A vertex where two loops touch is walked through once each."""
+    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    ordered = np.sort(directed, axis=1)
+    _, inverse, counts = np.unique(ordered, axis=0, return_inverse=True, return_counts=True)
+    border = directed[counts[inverse.ravel()] == 1]
+    following: dict[int, list[int]] = {}
+    for a, b in border.tolist():
+        following.setdefault(a, []).append(b)
+    loops = []
+    for start in list(following):
+        while following.get(start):
+            loop, here = [start], following[start].pop()
+            while here != start and following.get(here):
+                loop.append(here)
+                here = following[here].pop()
+            if here == start:
+                loops += [np.array(cycle) for cycle in _simple_cycles(loop) if len(cycle) >= 3]
+    return loops
+
+
+def _simple_cycles(loop: list[int]) -> list[list[int]]:
+    """Split a closed walk that passes a vertex more than once into simple cycles."""
+    cycles, stack, at = [], [], {}
+    for vertex in loop:
+        if vertex in at:
+            start = at[vertex]
+            cycles.append(stack[start:])
+            for dropped in stack[start + 1:]:
+                at.pop(dropped)
+            del stack[start + 1:]
+        else:
+            at[vertex] = len(stack)
+            stack.append(vertex)
+    cycles.append(stack)
+    return cycles
+
+
+def close_small_holes(mesh: trimesh.Trimesh, max_length: float) -> trimesh.Trimesh:
+    """Cap every border loop of ``mesh`` shorter than ``max_length`` with a fan about its
+    centroid, wound like the faces beside it. Longer loops (borders, holes in the data) stay."""
+    loops = border_loops(mesh.faces)
+    vertices, faces = [mesh.vertices], [mesh.faces]
+    count = len(mesh.vertices)
+    for loop in loops:
+        ring = mesh.vertices[loop]
+        if np.linalg.norm(np.diff(ring, axis=0, append=ring[:1]), axis=1).sum() > max_length:
+            continue
+        vertices.append(ring.mean(axis=0, keepdims=True))
+        # a border edge a → b lies in one face; the cap runs it b → a
+        faces.append(np.column_stack([np.roll(loop, -1), loop, np.full(len(loop), count)]))
+        count += 1
+    if count == len(mesh.vertices):
+        return mesh
+    return trimesh.Trimesh(np.concatenate(vertices), np.concatenate(faces), process=True)

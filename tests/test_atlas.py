@@ -9,7 +9,7 @@ import trimesh
 
 from reconstruct.atlas import AtlasReconstructor, fold_share
 from reconstruct.errors import InvalidInputError, NotFittedError, ReconstructionWarning
-from reconstruct.join import implicit_mesh
+from reconstruct.join import close_small_holes, implicit_mesh
 from reconstruct.metrics import surface_report
 from reconstruct.pipeline import SurfaceReconstructor
 
@@ -119,3 +119,19 @@ def test_the_reconstructor_fits_an_atlas_for_a_closed_cloud_by_itself():
 def test_a_wrong_atlas_mode_is_refused():
     with pytest.raises(InvalidInputError, match="atlas"):
         SurfaceReconstructor(atlas="sometimes").fit(sphere_cloud(200))
+
+
+def test_small_holes_are_capped_and_large_ones_kept():
+    sphere = trimesh.creation.icosphere(3)
+    top = sphere.triangles_center[:, 2]
+    pinhole = sphere.copy()
+    pinhole.update_faces(top < top.max() - 1e-9)  # the faces round the top vertex go
+    pinhole.remove_unreferenced_vertices()
+    capped = close_small_holes(pinhole, max_length=2.0)  # its border: 1.2 long
+    assert not pinhole.is_watertight
+    assert capped.is_watertight and capped.is_winding_consistent and capped.euler_number == 2
+    assert capped.volume > 0
+    open_cap = sphere.copy()
+    open_cap.update_faces(top < 0.5)
+    open_cap.remove_unreferenced_vertices()
+    assert not close_small_holes(open_cap, max_length=2.0).is_watertight  # 5.4 long

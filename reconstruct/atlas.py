@@ -61,7 +61,9 @@ class AtlasReconstructor(BaseEstimator):
         from the input points instead closed no more holes on the 5k hook and lost accuracy
         (denoise 0.96 against 0.70).
     reach : chart samples farther than this from every point (in median spacings) are dropped,
-        so a hole inside a chart's outline stays a hole.
+        so a hole inside a chart's outline stays a hole. Relief 20k σ 1 % (holes 84 and 101 mm
+        round): reach 2, trim 1.5 closed both holes; reach 1, trim 1 keeps them (63 and 99 mm
+        borders) and measured better (F 0.984 against 0.973, denoise 0.43 against 0.52).
     graph : an unfitted `SheetGraph` (its parameters); None: the defaults.
     random_state : seed (same seed, same mesh).
 
@@ -74,7 +76,7 @@ class AtlasReconstructor(BaseEstimator):
 
     def __init__(self, chart_size: int = 2500, overlap: float = 4.0, lam: float = 1.0,
                  depth: int = 2, reuse_layers: bool = True, max_splits: int = 2,
-                 voxel: float = 0.5, band: float = 3.0, trim: float = 1.5, reach: float = 2.0,
+                 voxel: float = 0.5, band: float = 3.0, trim: float = 1.0, reach: float = 1.0,
                  graph: SheetGraph | None = None, random_state: int | None = 0):
         self.chart_size = chart_size
         self.overlap = overlap

@@ -112,9 +112,9 @@ def verdicts(rows: list[dict]) -> list[str]:
         elif case == "sheets":
             checks += [("F ≥ 0.95", r["fscore"] >= 0.95)]
         else:
-            found, truth = r["holes"].split("/")
+            kept_open, truth_holes = r["holes"].split("/")
             checks += [("denoise ≤ 0.6", r["denoise_ratio"] <= 0.6),
-                       ("holes stay open", found == truth)]
+                       ("holes stay open", kept_open == truth_holes)]
         if peer is not None and case != "sheets":
             checks.append(("Chamfer ≤ Poisson's", r["chamfer_l1"] <= peer["chamfer_l1"]))
         found += [f"{case}: {label} — {'met' if ok else 'MISSED'}" for label, ok in checks]

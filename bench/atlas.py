@@ -20,10 +20,13 @@ import sys
 import time
 import warnings
 
+import numpy as np
+
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from bench.baselines import ball_pivoting, open3d_available, poisson  # noqa: E402
+from reconstruct.join import border_loops  # noqa: E402
 from reconstruct.metrics import surface_report  # noqa: E402
 from reconstruct.pipeline import SurfaceReconstructor  # noqa: E402
 from sim.awkward_objects import AWKWARD, GENUS, relief, sample_cloud  # noqa: E402
@@ -35,6 +38,24 @@ CLOSED = set(AWKWARD) - {"sheets"}
 
 def truth(name: str):
     return relief() if name == "relief" else AWKWARD[name]()
+
+
+def loop_lengths(mesh) -> np.ndarray:
+    """Perimeters of the mesh's border loops, longest first."""
+    lengths = [np.linalg.norm(np.diff(mesh.vertices[loop], axis=0,
+                                      append=mesh.vertices[loop][:1]), axis=1).sum()
+               for loop in border_loops(np.asarray(mesh.faces))]
+    return np.sort(lengths)[::-1]
+
+
+def open_holes(mesh, truth_mesh) -> str:
+    """Holes of an open surface kept open: loops besides the outer border at least half as long
+    as the truth's smallest hole, against the truth's number of holes."""
+    truth = loop_lengths(truth_mesh)[1:]
+    if len(truth) == 0:
+        return "-"
+    found = loop_lengths(mesh)[1:]
+    return f"{int(np.sum(found >= 0.5 * truth.min()))}/{len(truth)}"
 
 
 def run_case(name: str, n_points: int, seed: int, peers: bool) -> list[dict]:
@@ -58,17 +79,19 @@ def run_case(name: str, n_points: int, seed: int, peers: bool) -> list[dict]:
             "watertight": bool(result.is_watertight), "euler": int(result.euler_number),
             "object_euler": 2 - 2 * GENUS.get(name, 0) if name in CLOSED else None,
             "unexplained": getattr(built, "unexplained_", float("nan")),
+            "holes": open_holes(result, mesh) if name == "relief" else "-",
         })
     return rows
 
 
 def print_table(rows: list[dict]) -> None:
     print(f"{'case':9s} {'method':14s} {'chamfer':>9s} {'F@1%':>6s} {'denoise':>8s} "
-          f"{'closed':>6s} {'euler':>9s} {'unexpl.':>8s} {'s':>7s}")
+          f"{'closed':>6s} {'euler':>9s} {'holes':>6s} {'unexpl.':>8s} {'s':>7s}")
     for r in rows:
         euler = f"{r['euler']}/{r['object_euler']}" if r["object_euler"] is not None else r["euler"]
         print(f"{r['case']:9s} {r['method']:14s} {r['chamfer_l1']:9.5f} {r['fscore']:6.3f} "
               f"{r['denoise_ratio']:8.3f} {str(r['watertight']):>6s} {str(euler):>9s} "
+              f"{r['holes']:>6s} "
               f"{r['unexplained']:8.3f} {r['seconds']:7.1f}")
 
 
@@ -89,7 +112,9 @@ def verdicts(rows: list[dict]) -> list[str]:
         elif case == "sheets":
             checks += [("F ≥ 0.95", r["fscore"] >= 0.95)]
         else:
-            checks += [("denoise ≤ 0.6", r["denoise_ratio"] <= 0.6)]
+            kept_open, truth_holes = r["holes"].split("/")
+            checks += [("denoise ≤ 0.6", r["denoise_ratio"] <= 0.6),
+                       ("holes stay open", kept_open == truth_holes)]
         if peer is not None and case != "sheets":
             checks.append(("Chamfer ≤ Poisson's", r["chamfer_l1"] <= peer["chamfer_l1"]))
         found += [f"{case}: {label} — {'met' if ok else 'MISSED'}" for label, ok in checks]

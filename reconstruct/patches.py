@@ -48,7 +48,7 @@ log = logging.getLogger(__name__)
 def _default_reconstructor(random_state):
     from reconstruct.pipeline import SurfaceReconstructor
 
-    return SurfaceReconstructor(random_state=random_state)
+    return SurfaceReconstructor(random_state=random_state, atlas="never")  # a patch is a chart
 
 
 def _outward(points: np.ndarray, reference_z: float | None) -> np.ndarray:

@@ -47,9 +47,17 @@ DEFAULT_LAM = 1.0
 #: stray points; 2 keeps F-score ≥ 0.97 on the smooth shapes while still combining two paths.
 DEFAULT_DEPTH = 2
 STATE_FORMAT = "scanstation-reconstruction/1"
+#: One chart is not tried when the embedding's residual variance (1 − R² of geodesic against
+#: embedded distances) is above this. Measured at 1,600 and 20,000 points, σ 0.5 % and 1 %:
+#: every bench.quality shape ≤ 0.006; the closed awkward objects: hook 0.019–0.024, torus
+#: 0.056–0.060, figurine 0.083–0.094, mug 0.33–0.41 (the two plates of `sheets`: 0.001, left to
+#: the unexplained check). Neighbour preservation does not separate them at 20,000 points, σ 1 %
+#: (discs 0.51–0.61, closed 0.28–0.41).
+ATLAS_RESIDUAL = 0.015
+ATLAS_MODES = ("auto", "never", "always")
 _MESH_PARAMS = ("lam", "depth", "n_corners", "boundary", "grid_spacing", "variance", "extend")
 #: Training-only parameters: not saved (a loaded reconstruction re-meshes, it does not train).
-_TRAINING_PARAMS = ("mlp", "fine_tune", "warm_tolerance")
+_TRAINING_PARAMS = ("mlp", "fine_tune", "warm_tolerance", "atlas")
 
 
 class SurfaceReconstructor(BaseEstimator):
@@ -74,6 +82,10 @@ class SurfaceReconstructor(BaseEstimator):
         network has data; "border" out to the sampled region's estimated true border (more
         complete, but the network extrapolates there); a number; 0 meshes the spline as fitted.
     random_state : seed; the same seed gives the same mesh.
+    atlas : "auto" fits an atlas of charts (`reconstruct.atlas`) instead of one chart when the
+        cloud is not one disc-like surface: its embedding keeps fewer than ``ATLAS_BELOW`` of
+        the neighbours, or the one-chart mesh leaves more than ``UNEXPLAINED_LIMIT`` of the
+        points unexplained; "never" keeps one chart (and warns); "always" fits an atlas.
     mlp : an unfitted `AdaptiveMLP` (cloned by `fit`) used instead of the one ``max_layers``,
         ``max_neurons``, ``activation``, ``retrain`` and ``random_state`` describe: other
         training budgets, or ``hidden_layers`` to skip the search.
@@ -91,6 +103,9 @@ class SurfaceReconstructor(BaseEstimator):
     `ReconstructionWarning` when the share is over 5 %).
     ``timings_`` (seconds per stage of the last fit / remesh: embedding, search, final fits,
     export, boundary, mesh).
+    When an atlas was fitted: ``atlas_`` (`AtlasReconstructor`), ``atlas_reason_`` (why), and
+    ``mesh_``, ``unexplained_``, ``neighbour_preservation_`` are the atlas's; the one-chart
+    attributes (``embedding_``, ``surface_map_``, ...) are not set.
     """
 
     def __init__(
@@ -112,6 +127,7 @@ class SurfaceReconstructor(BaseEstimator):
         mlp=None,
         fine_tune: dict | None = None,
         warm_tolerance: float | None = None,
+        atlas: str = "auto",
     ):
         self.lam = lam
         self.depth = depth
@@ -130,6 +146,7 @@ class SurfaceReconstructor(BaseEstimator):
         self.mlp = mlp
         self.fine_tune = fine_tune
         self.warm_tolerance = warm_tolerance
+        self.atlas = atlas
 
     def fit(self, points, warm_start: SurfaceReconstructor | None = None) -> SurfaceReconstructor:
         """points : (n, 3) float, any unit. Returns self with ``mesh_`` set.
@@ -139,7 +156,13 @@ class SurfaceReconstructor(BaseEstimator):
             network fine-tuned (``fine_tune``); raises `WarmStartRefused` (nothing changed)
             when too few points are shared, the embeddings disagree or it has no network."""
         self._check_mesh_params()
+        if self.atlas not in ATLAS_MODES:
+            raise InvalidInputError(f"atlas must be one of {ATLAS_MODES}, got {self.atlas!r}")
         points = check_points(points)
+        for name in ("atlas_", "atlas_reason_"):
+            self.__dict__.pop(name, None)
+        if self.atlas == "always" and warm_start is None:
+            return self._fit_atlas(points, "asked for")
         started = time.perf_counter()
         self.timings_ = {}
         n_neighbors = self.n_neighbors
@@ -153,6 +176,12 @@ class SurfaceReconstructor(BaseEstimator):
         self.timings_["embedding"] = time.perf_counter() - started
         fitted = points[embedding.support_]
         uv = embedding.embedding_
+        if warm_start is None and self.atlas == "auto":
+            residual = embedding.residual_variance_
+            if residual > ATLAS_RESIDUAL:
+                return self._fit_atlas(points, (
+                    f"its embedding's residual variance is {residual:.3f} (one disc-like "
+                    f"surface: under {ATLAS_RESIDUAL})"))
         if warm_start is None:
             mlp = self._new_mlp().fit(uv, fitted)
         else:
@@ -170,6 +199,9 @@ class SurfaceReconstructor(BaseEstimator):
         self.timings_.update(getattr(mlp, "timings_", {}))
         self._boundary_cache = {}
         self.remesh()
+        if warm_start is None and self.atlas == "auto" and unexplained_fraction(
+                self.mesh_, self.points_) > UNEXPLAINED_LIMIT:
+            return self._fit_atlas(points, "one chart leaves too many points unexplained")
         self._check_faithful()
         log.info(
             "reconstructed %d points in %.1f s: %s, K=%d, layers %s, %d vertices, %d faces",
@@ -181,6 +213,33 @@ class SurfaceReconstructor(BaseEstimator):
             len(self.mesh_.vertices),
             len(self.mesh_.faces),
         )
+        return self
+
+    def _fit_atlas(self, points, reason: str) -> SurfaceReconstructor:
+        """Fit an atlas of charts (`reconstruct.atlas`) and take its mesh; warn in one line
+        when the atlas fails its own checks."""
+        from .atlas import AtlasReconstructor
+
+        log.info("fitting an atlas of charts: %s", reason)
+        for name in [n for n in self.__dict__ if n.endswith("_") and not n.startswith("_")]:
+            del self.__dict__[name]  # nothing of an earlier one-chart fit is left behind
+        atlas = AtlasReconstructor(lam=self.lam, depth=self.depth,
+                                   random_state=self.random_state).fit(points)
+        self.atlas_ = atlas
+        self.atlas_reason_ = reason
+        self.mesh_ = atlas.mesh_
+        self.timings_ = dict(atlas.timings_)
+        self.unexplained_ = unexplained_fraction(self.mesh_, points)
+        self.neighbour_preservation_ = float(np.mean(
+            [chart.neighbour_preservation_ for chart in atlas.charts_]))
+        problems = list(atlas.faults_)
+        if self.unexplained_ > UNEXPLAINED_LIMIT:
+            problems.insert(0, f"the mesh leaves {100 * self.unexplained_:.0f} % of the "
+                               "points farther than their noise allows")
+        if problems:
+            warnings.warn(f"atlas of {len(atlas.charts_)} charts: {problems[0]}"
+                          + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""),
+                          ReconstructionWarning, stacklevel=3)
         return self
 
     def _new_mlp(self) -> AdaptiveMLP:
@@ -220,6 +279,11 @@ class SurfaceReconstructor(BaseEstimator):
         unknown = set(params) - set(_MESH_PARAMS)
         if unknown:
             raise InvalidInputError(f"cannot re-mesh with {sorted(unknown)}: not a mesh parameter")
+        if hasattr(self, "atlas_"):
+            self._check_mesh_params_given(params)
+            self.mesh_ = self.atlas_.remesh(**params)
+            self.set_params(**{k: v for k, v in params.items() if v is not None})
+            return self.mesh_
         if not hasattr(self, "surface_map_"):
             raise NotFittedError("fit() the reconstructor (or load() a saved one) first")
         previous = self.get_params(deep=False)
@@ -255,6 +319,15 @@ class SurfaceReconstructor(BaseEstimator):
             1000 * (time.perf_counter() - started),
         )
         return self.mesh_
+
+    def _check_mesh_params_given(self, params) -> None:
+        """Validate re-mesh parameters without keeping them (raises `InvalidInputError`)."""
+        previous = self.get_params(deep=False)
+        self.set_params(**{k: v for k, v in params.items() if v is not None})
+        try:
+            self._check_mesh_params()
+        finally:
+            self.set_params(**previous)
 
     def _extended(self, polygon: np.ndarray) -> np.ndarray:
         depth = self.depth if self.boundary == "multidepth" else 1
@@ -309,6 +382,10 @@ class SurfaceReconstructor(BaseEstimator):
     # -- persistence ---------------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> Path:
         """Write the fitted state (embedded points, ONNX model, parameters) atomically."""
+        if hasattr(self, "atlas_"):
+            raise InvalidInputError(
+                "saving an atlas of charts is not supported yet: its mesh is written, its state "
+                "is not (re-mesh it in the same process with remesh())")
         if not hasattr(self, "surface_map_"):
             raise NotFittedError("nothing to save: fit() the reconstructor first")
         path = Path(path)

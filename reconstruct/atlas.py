@@ -1,0 +1,204 @@
+"""Any surface with the paper's method: an atlas of charts, each fitted by `SurfaceReconstructor`,
+joined into one mesh.
+
+`AtlasReconstructor.fit` splits the cloud into overlapping disc-like charts
+(`reconstruct.charts` on the sheet-respecting graph of `reconstruct.sheet_graph`), fits each
+with the paper's pipeline (embedding → adaptive MLP → multi-depth boundary → spline → mesh →
+ONNX map; the first chart's searched layer widths and K are reused by the others, which then
+train without a search), and accepts a chart only when it is faithful: its mesh leaves at most
+`UNEXPLAINED_LIMIT` of its points unexplained and does not fold over (`fold_share`); otherwise
+the chart is split and fitted again (at most ``max_splits`` times along one line of descent).
+The accepted charts' meshes, trimmed to a partition of the cloud, oriented alike and joined by
+`reconstruct.join.implicit_mesh`, give ``mesh_``: watertight where the cloud is closed, open
+where the data has a border or a hole wider than a few spacings.
+
+`remesh(lam=..., depth=...)` re-meshes every chart through its stored ONNX map (no retraining)
+and joins them again.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import warnings
+
+import numpy as np
+import trimesh
+from sklearn.base import BaseEstimator
+
+from .charts import ChartDecomposition
+from .errors import NotFittedError, ReconstructionWarning
+from .faithfulness import UNEXPLAINED_LIMIT
+from .join import chart_samples, implicit_mesh, orient_charts
+from .sheet_graph import SheetGraph
+from .validation import check_points
+
+log = logging.getLogger(__name__)
+
+#: Largest share of a chart mesh's adjacent face pairs folded back onto each other (> 120°).
+FOLD_LIMIT = 0.02
+_FOLD_ANGLE = np.radians(120)
+
+
+def fold_share(mesh: trimesh.Trimesh) -> float:
+    """Share of adjacent face pairs of ``mesh`` meeting at more than 120° (a fold-over)."""
+    angles = mesh.face_adjacency_angles
+    return float(np.mean(angles > _FOLD_ANGLE)) if len(angles) else 0.0
+
+
+class AtlasReconstructor(BaseEstimator):
+    """Reconstruct one mesh from any surface cloud (n, 3) with an atlas of fitted charts.
+
+    Parameters
+    ----------
+    chart_size : points in a chart's core (`ChartDecomposition`).
+    overlap : ring around each core, in median spacings.
+    lam, depth : the charts' spline smoothing and boundary depth (`SurfaceReconstructor`).
+    reuse_layers : later charts train the first chart's searched layer widths (no search).
+    max_splits : how often an unfaithful chart may be split again.
+    voxel : grid spacing of the join, in median point spacings (mean distance to 12 nearest).
+    band, trim : `implicit_mesh` band and trim (from the chart samples), in voxels. Trimming
+        from the input points instead closed no more holes on the 5k hook and lost accuracy
+        (denoise 0.96 against 0.70).
+    reach : chart samples farther than this from every point (in median spacings) are dropped,
+        so a hole inside a chart's outline stays a hole. Relief 20k σ 1 % (holes 84 and 101 mm
+        round): reach 2, trim 1.5 closed both holes; reach 1, trim 1 keeps them (63 and 99 mm
+        borders) and measured better (F 0.984 against 0.973, denoise 0.43 against 0.52).
+    graph : an unfitted `SheetGraph` (its parameters); None: the defaults.
+    random_state : seed (same seed, same mesh).
+
+    Fitted attributes: ``charts_`` list of fitted `SurfaceReconstructor`, ``chart_points_`` list
+    of (m_i,) indices of the points each was fitted to, ``decomposition_``
+    (`ChartDecomposition`), ``signs_`` (c,) ±1 orientation of each chart, ``mesh_``
+    (trimesh.Trimesh), ``faults_`` one line per chart kept though unfaithful,
+    ``watertight_``, ``euler_``, ``winding_consistent_``, ``timings_`` seconds per stage.
+    """
+
+    def __init__(self, chart_size: int = 2500, overlap: float = 4.0, lam: float = 1.0,
+                 depth: int = 2, reuse_layers: bool = True, max_splits: int = 2,
+                 voxel: float = 0.5, band: float = 3.0, trim: float = 1.0, reach: float = 1.0,
+                 graph: SheetGraph | None = None, random_state: int | None = 0):
+        self.chart_size = chart_size
+        self.overlap = overlap
+        self.lam = lam
+        self.depth = depth
+        self.reuse_layers = reuse_layers
+        self.max_splits = max_splits
+        self.voxel = voxel
+        self.band = band
+        self.trim = trim
+        self.reach = reach
+        self.graph = graph
+        self.random_state = random_state
+
+    def fit(self, points, y=None) -> AtlasReconstructor:
+        """points : (n, 3) float. Returns self with ``mesh_`` set."""
+        points = check_points(points)
+        started = time.perf_counter()
+        self.timings_ = {}
+        decomposition = ChartDecomposition(
+            chart_size=self.chart_size, overlap=self.overlap, graph=self.graph,
+            random_state=self.random_state).fit(points)
+        self.timings_["charts"] = time.perf_counter() - started
+        self.decomposition_ = decomposition
+        self.points_ = points
+        fitted: dict[int, tuple] = {}
+        self.faults_ = []
+        queue = [(index, 0) for index in range(decomposition.n_charts_)]
+        first = None
+        while queue:
+            index, splits = queue.pop(0)
+            members = decomposition.chart(index)
+            reconstructor, fault = self._fit_chart(points[members], first, index)
+            if fault is not None and splits < self.max_splits and len(
+                    decomposition.cores_[index]) >= 2 * decomposition.min_points:
+                new = decomposition.split(index)
+                log.info("chart %d: %s; split in %d", index, fault, len(new))
+                queue += [(i, splits + 1) for i in new]
+                fitted.pop(index, None)
+                continue
+            if fault is not None:
+                self.faults_.append(f"chart {index} ({len(members)} points): {fault}")
+            if first is None and reconstructor is not None:
+                first = reconstructor
+            fitted[index] = (reconstructor, members)
+            log.info("chart %d of %d fitted (%d points, %.0f s so far)", len(fitted),
+                     decomposition.n_charts_, len(members), time.perf_counter() - started)
+        order = sorted(i for i in fitted if fitted[i][0] is not None)
+        self.charts_ = [fitted[i][0] for i in order]
+        self.chart_points_ = [fitted[i][1] for i in order]
+        self._chart_ids = order
+        self.timings_["fits"] = time.perf_counter() - started - self.timings_["charts"]
+        self.signs_ = orient_charts([c.mesh_ for c in self.charts_], self.chart_points_, points)
+        self._join()
+        self.timings_["total"] = time.perf_counter() - started
+        log.info("atlas: %d charts, %d faces, watertight %s, Euler %d (%.1f s)",
+                 len(self.charts_), len(self.mesh_.faces), self.watertight_, self.euler_,
+                 self.timings_["total"])
+        return self
+
+    def _fit_chart(self, chart_points, first, index):
+        """Fit one chart; returns (reconstructor or None, fault or None)."""
+        from .mlp import AdaptiveMLP
+        from .pipeline import SurfaceReconstructor
+
+        params = dict(lam=self.lam, depth=self.depth, random_state=self.random_state,
+                      atlas="never")
+        if first is not None and self.reuse_layers:
+            params.update(n_neighbors=first.n_neighbors_, mlp=AdaptiveMLP(
+                hidden_layers=first.hidden_layers_, random_state=self.random_state))
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", ReconstructionWarning)
+                reconstructor = SurfaceReconstructor(**params).fit(chart_points)
+        except Exception as exc:  # a chart the method cannot fit is split, never hidden
+            log.info("chart %d failed to fit: %s", index, exc)
+            return None, f"fit failed ({exc})"
+        faults = []
+        if reconstructor.unexplained_ > UNEXPLAINED_LIMIT:
+            faults.append(f"{100 * reconstructor.unexplained_:.0f} % of its points unexplained")
+        folds = fold_share(reconstructor.mesh_)
+        if folds > FOLD_LIMIT:
+            faults.append(f"mesh folds over ({100 * folds:.1f} % of its edges)")
+        reconstructor.fold_share_ = folds
+        return reconstructor, ("; ".join(faults) or None)
+
+    def _join(self) -> None:
+        started = time.perf_counter()
+        meshes = [c.mesh_ for c in self.charts_]
+        labels = self.decomposition_.labels_.copy()
+        # points of charts that did not fit belong to none
+        labels[~np.isin(labels, self._chart_ids)] = -1
+        remap = {old: new for new, old in enumerate(self._chart_ids)}
+        labels = np.array([remap.get(int(label), -1) for label in labels])
+        kept = chart_samples(meshes, labels, self.points_,
+                             reach=self.reach * self.decomposition_.spacing_)
+        samples = np.concatenate([m.vertices[k] for m, k in zip(meshes, kept, strict=True)])
+        normals = np.concatenate([s * m.vertex_normals[k]
+                                  for m, k, s in zip(meshes, kept, self.signs_, strict=True)])
+        voxel = self.voxel * self.decomposition_.spacing_
+        self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim)
+        self.samples_, self.normals_ = samples, normals
+        self.watertight_ = bool(self.mesh_.is_watertight)
+        self.winding_consistent_ = bool(self.mesh_.is_winding_consistent)
+        self.euler_ = int(self.mesh_.euler_number)
+        self.timings_["join"] = time.perf_counter() - started
+
+    def remesh(self, **params) -> trimesh.Trimesh:
+        """Re-mesh every chart with new ``lam``, ``depth``, ... through its ONNX map (no
+        retraining) and join them again. Returns and stores ``mesh_``."""
+        if not hasattr(self, "charts_"):
+            raise NotFittedError("fit() the atlas first")
+        started = time.perf_counter()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", ReconstructionWarning)
+            for chart in self.charts_:
+                chart.remesh(**params)
+        said = [w for w in caught if issubclass(w.category, ReconstructionWarning)]
+        if said:  # one line for the atlas, not one per chart
+            warnings.warn(f"{len(said)} of {len(self.charts_)} charts: {said[0].message}",
+                          ReconstructionWarning, stacklevel=2)
+        self.timings_["remesh charts"] = time.perf_counter() - started
+        self._join()
+        self.timings_["remesh"] = time.perf_counter() - started
+        return self.mesh_

@@ -1,0 +1,137 @@
+"""An atlas of charts fitted by the paper's method gives one mesh: closed where the cloud is
+closed, open at borders and holes (reconstruct.atlas, reconstruct.join)."""
+
+import warnings
+
+import numpy as np
+import pytest
+import trimesh
+
+from reconstruct.atlas import AtlasReconstructor, fold_share
+from reconstruct.errors import InvalidInputError, NotFittedError, ReconstructionWarning
+from reconstruct.join import close_small_holes, implicit_mesh
+from reconstruct.metrics import surface_report
+from reconstruct.pipeline import SurfaceReconstructor
+
+
+def sphere_cloud(n=3000, sigma=0.005, seed=0):
+    rng = np.random.default_rng(seed)
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    return direction + rng.normal(0, sigma * 2 * np.sqrt(3), (n, 3))
+
+
+def holed_patch(n=3000, hole=0.25, sigma=0.01, seed=0):
+    """A wavy height field over [-1, 1]² with a round hole of radius ``hole`` at (0.3, 0.2)."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-1, 1, (3 * n, 2))
+    xy = xy[np.linalg.norm(xy - (0.3, 0.2), axis=1) > hole][:n]
+    points = np.c_[xy, 0.2 * np.sin(2 * xy[:, 0]) * np.cos(1.5 * xy[:, 1])]
+    return points + rng.normal(0, sigma * 2 * np.sqrt(2), points.shape)
+
+
+@pytest.fixture(scope="module")
+def sphere_atlas():
+    points = sphere_cloud()
+    return points, AtlasReconstructor(chart_size=1000).fit(points)
+
+
+def test_a_closed_cloud_gives_a_closed_mesh_of_its_genus(sphere_atlas):
+    points, atlas = sphere_atlas
+    assert len(atlas.charts_) >= 2
+    assert atlas.watertight_ and atlas.winding_consistent_
+    assert atlas.euler_ == 2
+    assert atlas.mesh_.volume > 0  # outward
+    truth = trimesh.creation.icosphere(5)
+    report = surface_report(atlas.mesh_, points, truth)
+    assert report["fscore"] > 0.97
+    assert report["denoise_ratio"] < 0.7
+
+
+def test_every_chart_is_faithful_or_said(sphere_atlas):
+    _, atlas = sphere_atlas
+    for chart in atlas.charts_:
+        assert chart.unexplained_ <= 0.05 or atlas.faults_
+        assert fold_share(chart.mesh_) <= 0.02 or atlas.faults_
+
+
+def test_remesh_runs_through_the_stored_maps(sphere_atlas):
+    _, atlas = sphere_atlas
+    maps = [chart.surface_map_ for chart in atlas.charts_]
+    before = len(atlas.mesh_.faces)
+    atlas.remesh(lam=3.0, depth=3)
+    assert [chart.surface_map_ for chart in atlas.charts_] == maps  # nothing retrained
+    assert all(chart.depth == 3 for chart in atlas.charts_)
+    assert atlas.watertight_ and len(atlas.mesh_.faces) > 0.5 * before
+
+
+def test_an_open_patch_keeps_its_border_and_its_hole():
+    points = holed_patch()
+    atlas = AtlasReconstructor(chart_size=1500).fit(points)
+    mesh = atlas.mesh_
+    assert not atlas.watertight_
+    assert len(mesh.split(only_watertight=False)) == 1
+    # nothing spans the hole: no face centre within 60 % of its radius from its centre
+    centres = mesh.triangles_center
+    assert np.linalg.norm(centres[:, :2] - (0.3, 0.2), axis=1).min() > 0.15
+    # a border runs round the hole (in one loop, or two where it pinches) and round the patch
+    outline = mesh.outline()
+    loops = [outline.vertices[e.points] for e in outline.entities]
+    lengths = np.array([np.linalg.norm(np.diff(v, axis=0), axis=1).sum() for v in loops])
+    near_hole = np.array([np.linalg.norm(v[:, :2].mean(axis=0) - (0.3, 0.2)) < 0.3
+                          for v in loops])
+    assert lengths[near_hole].sum() > 0.8 * 2 * np.pi * 0.25
+    assert lengths[~near_hole].max() > 0.8 * 8
+    # and the mesh ends near the data's border (noise σ 0.028 scatters points to ±1.08)
+    assert np.abs(centres[:, :2]).max() < 1.15
+
+
+def test_implicit_mesh_closes_oriented_samples_of_a_sphere():
+    sphere = trimesh.creation.icosphere(4)
+    mesh = implicit_mesh(sphere.vertices, sphere.vertex_normals, voxel=0.08)
+    assert mesh.is_watertight and mesh.euler_number == 2 and mesh.volume > 0
+    assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 1).max() < 0.03
+
+
+def test_remesh_before_fit_is_refused():
+    with pytest.raises(NotFittedError):
+        AtlasReconstructor().remesh(lam=2.0)
+
+
+def test_the_reconstructor_fits_an_atlas_for_a_closed_cloud_by_itself():
+    points = sphere_cloud(1500, sigma=0.01)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ReconstructionWarning)
+        model = SurfaceReconstructor(max_layers=1, max_neurons=8).fit(points)
+    assert "residual variance" in model.atlas_reason_
+    assert model.mesh_.is_watertight and model.mesh_.euler_number == 2
+    assert model.unexplained_ <= 0.05
+    assert not hasattr(model, "surface_map_")
+    remeshed = model.remesh(lam=2.0)
+    assert remeshed is model.mesh_ and model.lam == 2.0 and remeshed.is_watertight
+    with pytest.raises(InvalidInputError, match="atlas"):
+        model.save("unused.npz")
+    with pytest.raises(InvalidInputError, match="depth"):
+        model.remesh(depth=0)
+    assert model.depth == 2  # a refused value changes nothing
+
+
+def test_a_wrong_atlas_mode_is_refused():
+    with pytest.raises(InvalidInputError, match="atlas"):
+        SurfaceReconstructor(atlas="sometimes").fit(sphere_cloud(200))
+
+
+def test_small_holes_are_capped_and_large_ones_kept():
+    sphere = trimesh.creation.icosphere(3)
+    top = sphere.triangles_center[:, 2]
+    pinhole = sphere.copy()
+    pinhole.update_faces(top < top.max() - 1e-9)  # the faces round the top vertex go
+    pinhole.remove_unreferenced_vertices()
+    capped = close_small_holes(pinhole, max_length=2.0)  # its border: 1.2 long
+    assert not pinhole.is_watertight
+    assert capped.is_watertight and capped.is_winding_consistent and capped.euler_number == 2
+    assert capped.volume > 0
+    open_cap = sphere.copy()
+    open_cap.update_faces(top < 0.5)
+    open_cap.remove_unreferenced_vertices()
+    assert not close_small_holes(open_cap, max_length=2.0).is_watertight  # 5.4 long

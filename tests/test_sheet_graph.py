@@ -1,0 +1,96 @@
+"""The neighbourhood graph never bridges two sheets (reconstruct.sheet_graph)."""
+
+import numpy as np
+import pytest
+from scipy.sparse.csgraph import connected_components
+
+from reconstruct.errors import InvalidInputError
+from reconstruct.sheet_graph import SheetGraph, otsu_layers
+
+
+def two_sheets(n, gap, sigma, seed=0):
+    """Two parallel unit squares ``gap`` apart (shares of the diagonal), noise σ × diagonal."""
+    rng = np.random.default_rng(seed)
+    side = rng.integers(0, 2, n)
+    diagonal = np.sqrt(2.0)
+    points = np.c_[rng.uniform(-0.5, 0.5, (n, 2)), (side - 0.5) * gap * diagonal]
+    return points + rng.normal(0, sigma * diagonal, (n, 3)), side
+
+
+def curled_sheet(n, turn_deg=300, radius=0.3, sigma=0.005, seed=0):
+    """A sheet rolled ``turn_deg`` about z: its two ends face each other across a small gap."""
+    rng = np.random.default_rng(seed)
+    phi = rng.uniform(0, np.radians(turn_deg), n)
+    r = radius * (1 - 0.08 * phi)  # a spiral: the overlapping ends lie 0.08·2π·r apart
+    points = np.c_[r * np.cos(phi), r * np.sin(phi), rng.uniform(0, 1, n)]
+    return points + rng.normal(0, sigma, (n, 3)), phi
+
+
+def sheet_purity(graph, side):
+    """Share of the points in the two largest pieces that lie on their piece's majority sheet,
+    and the share of all points in those two pieces."""
+    _, labels = connected_components(graph, directed=False)
+    largest = np.argsort(np.bincount(labels))[-2:]
+    inside = np.isin(labels, largest)
+    majority = sum(np.bincount(side[labels == piece]).max() for piece in largest)
+    return majority / inside.sum(), inside.mean()
+
+
+def cross_share(graph, side):
+    coo = graph.tocoo()
+    return float(np.mean(side[coo.row] != side[coo.col]))
+
+
+def test_otsu_finds_two_layers_and_not_one():
+    rng = np.random.default_rng(0)
+    one = rng.normal(size=(2000, 64))
+    two = one + 5 * rng.integers(0, 2, (2000, 64))
+    assert np.median(otsu_layers(one)[1]) < 3.0 < 4.5 < np.median(otsu_layers(two)[1])
+
+
+def test_sheets_two_percent_apart_at_half_percent_noise_stay_apart():
+    points, side = two_sheets(4000, gap=0.02, sigma=0.005)
+    graph = SheetGraph().fit(points)
+    assert graph.layered_.mean() > 0.9
+    # Gaussian noise of 0.5 % moves 2.3 % of the points nearer the other sheet than their own:
+    # those join the other sheet; no edge may bridge the two pieces.
+    assert cross_share(graph.graph_, side) < 0.05
+    purity, covered = sheet_purity(graph.graph_, side)
+    assert purity > 0.96 and covered > 0.85
+
+
+def test_sheets_at_one_percent_noise_when_four_sigma_apart_with_a_wide_layer_test():
+    # At σ 1 % the layer test needs neighbourhoods wider than the noise (256 points here); a
+    # few edges at the open squares' borders still cross (measured 0.6 %), so each sheet's own
+    # graph is checked, not the separation of the pieces.
+    points, side = two_sheets(12000, gap=0.04, sigma=0.01)
+    graph = SheetGraph(n_layer=256).fit(points)
+    assert graph.layered_.mean() > 0.95
+    assert cross_share(graph.graph_, side) < 0.01
+    for sheet in (0, 1):
+        own = graph.graph_[side == sheet][:, side == sheet]
+        sizes = np.bincount(connected_components(own, directed=False)[1])
+        assert sizes.max() > 0.8 * sizes.sum()
+
+
+def test_one_sheet_stays_one_piece():
+    points, _ = two_sheets(3000, gap=0.0, sigma=0.01)
+    graph = SheetGraph().fit(points)
+    assert graph.layered_.mean() < 0.05
+    sizes = np.bincount(graph.labels_)
+    assert sizes.max() > 0.99 * len(points)
+
+
+def test_a_curled_sheet_keeps_its_overlapping_ends_apart():
+    points, phi = curled_sheet(6000)
+    graph = SheetGraph().fit(points).graph_
+    coo = graph.tocoo()
+    # an edge joins points at nearly the same angle along the sheet, never its two ends
+    assert np.abs(phi[coo.row] - phi[coo.col]).max() < 1.0
+    sizes = np.bincount(connected_components(graph, directed=False)[1])
+    assert sizes.max() > 0.97 * len(points)
+
+
+def test_bad_points_are_refused():
+    with pytest.raises(InvalidInputError):
+        SheetGraph().fit(np.array([[0.0, 0.0, np.nan]] * 10))

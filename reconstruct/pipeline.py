@@ -27,7 +27,13 @@ from .alignment import align_to
 from .boundary import MultiDepthBoundary, PCABoundary
 from .embedding import SurfaceEmbedding
 from .errors import InvalidInputError, NotFittedError, ReconstructionWarning, WarmStartRefused
-from .faithfulness import UNEXPLAINED_LIMIT, neighbour_preservation, unexplained_fraction
+from .faithfulness import (
+    BRIDGE_LIMIT,
+    UNEXPLAINED_LIMIT,
+    bridged_share,
+    neighbour_preservation,
+    unexplained_fraction,
+)
 from .io import write_bytes_atomic
 from .meshing import default_spacing, mesh_inside, sample_ring
 from .mlp import AdaptiveMLP
@@ -83,9 +89,11 @@ class SurfaceReconstructor(BaseEstimator):
         complete, but the network extrapolates there); a number; 0 meshes the spline as fitted.
     random_state : seed; the same seed gives the same mesh.
     atlas : "auto" fits an atlas of charts (`reconstruct.atlas`) instead of one chart when the
-        cloud is not one disc-like surface: its embedding keeps fewer than ``ATLAS_BELOW`` of
-        the neighbours, or the one-chart mesh leaves more than ``UNEXPLAINED_LIMIT`` of the
-        points unexplained; "never" keeps one chart (and warns); "always" fits an atlas.
+        cloud is not one disc-like surface: its embedding's residual variance is over
+        ``ATLAS_RESIDUAL``, the one-chart mesh leaves more than ``UNEXPLAINED_LIMIT`` of the
+        points unexplained, or more than ``BRIDGE_LIMIT`` of its area spans holes in the data
+        (`faithfulness.bridged_share`); "never" keeps one chart (and warns); "always" fits an
+        atlas.
     mlp : an unfitted `AdaptiveMLP` (cloned by `fit`) used instead of the one ``max_layers``,
         ``max_neurons``, ``activation``, ``retrain`` and ``random_state`` describe: other
         training budgets, or ``hidden_layers`` to skip the search.
@@ -199,9 +207,11 @@ class SurfaceReconstructor(BaseEstimator):
         self.timings_.update(getattr(mlp, "timings_", {}))
         self._boundary_cache = {}
         self.remesh()
-        if warm_start is None and self.atlas == "auto" and unexplained_fraction(
-                self.mesh_, self.points_) > UNEXPLAINED_LIMIT:
-            return self._fit_atlas(points, "one chart leaves too many points unexplained")
+        if warm_start is None and self.atlas == "auto":
+            if unexplained_fraction(self.mesh_, self.points_) > UNEXPLAINED_LIMIT:
+                return self._fit_atlas(points, "one chart leaves too many points unexplained")
+            if bridged_share(self.mesh_, self.points_) > BRIDGE_LIMIT:
+                return self._fit_atlas(points, "one chart's mesh spans holes in the data")
         self._check_faithful()
         log.info(
             "reconstructed %d points in %.1f s: %s, K=%d, layers %s, %d vertices, %d faces",

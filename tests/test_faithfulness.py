@@ -7,7 +7,12 @@ import pytest
 import trimesh
 
 from reconstruct.errors import ReconstructionWarning
-from reconstruct.faithfulness import local_noise, neighbour_preservation, unexplained_fraction
+from reconstruct.faithfulness import (
+    bridged_share,
+    local_noise,
+    neighbour_preservation,
+    unexplained_fraction,
+)
 from reconstruct.pipeline import SurfaceReconstructor
 
 
@@ -66,3 +71,23 @@ def test_a_disc_like_cloud_is_not_reported():
         model = SurfaceReconstructor(max_layers=1, max_neurons=6).fit(flat_square(900))
     assert model.unexplained_ == 0.0
     assert model.neighbour_preservation_ > 0.7
+
+
+def test_a_mesh_spanning_a_hole_in_the_data_is_measured():
+    points = flat_square(4000)
+    holed = points[np.linalg.norm(points[:, :2], axis=1) > 0.4]  # a hole of radius 0.4
+    mesh = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(
+        square_mesh().vertices, square_mesh().faces, max_edge=0.05))  # spans the hole
+    assert bridged_share(mesh, points) < 0.001
+    # faces farther than 3 spacings (~0.05) from the points: the hole but a rim, of area 4
+    assert bridged_share(mesh, holed) == pytest.approx(np.pi * 0.35**2 / 4, rel=0.3)
+
+
+def test_a_cloud_with_a_hole_goes_through_the_atlas():
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-1, 1, (6000, 2))
+    xy = xy[np.linalg.norm(xy, axis=1) > 0.35][:3000]
+    points = np.c_[xy, 0.2 * np.sin(2 * xy[:, 0]) + rng.normal(0, 0.01, len(xy))]
+    model = SurfaceReconstructor(max_layers=1, max_neurons=6).fit(points)
+    assert model.atlas_reason_ == "one chart's mesh spans holes in the data"
+    assert bridged_share(model.mesh_, points) < 0.001

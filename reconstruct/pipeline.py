@@ -92,8 +92,8 @@ class SurfaceReconstructor(BaseEstimator):
         cloud is not one disc-like surface: its embedding's residual variance is over
         ``ATLAS_RESIDUAL``, the one-chart mesh leaves more than ``UNEXPLAINED_LIMIT`` of the
         points unexplained, or more than ``BRIDGE_LIMIT`` of its area spans holes in the data
-        (`faithfulness.bridged_share`); "never" keeps one chart (and warns); "always" fits an
-        atlas.
+        (`faithfulness.bridged_share`; the atlas then fits the piece the chart fitted);
+        "never" keeps one chart (and warns); "always" fits an atlas.
     mlp : an unfitted `AdaptiveMLP` (cloned by `fit`) used instead of the one ``max_layers``,
         ``max_neurons``, ``activation``, ``retrain`` and ``random_state`` describe: other
         training budgets, or ``hidden_layers`` to skip the search.
@@ -210,8 +210,8 @@ class SurfaceReconstructor(BaseEstimator):
         if warm_start is None and self.atlas == "auto":
             if unexplained_fraction(self.mesh_, self.points_) > UNEXPLAINED_LIMIT:
                 return self._fit_atlas(points, "one chart leaves too many points unexplained")
-            if bridged_share(self.mesh_, self.points_) > BRIDGE_LIMIT:
-                return self._fit_atlas(points, "one chart's mesh spans holes in the data")
+            if bridged_share(self.mesh_, self.points_) > BRIDGE_LIMIT:  # the piece it meshed
+                return self._fit_atlas(self.points_, "one chart's mesh spans holes in the data")
         self._check_faithful()
         log.info(
             "reconstructed %d points in %.1f s: %s, K=%d, layers %s, %d vertices, %d faces",

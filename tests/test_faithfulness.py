@@ -79,7 +79,7 @@ def test_a_mesh_spanning_a_hole_in_the_data_is_measured():
     mesh = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(
         square_mesh().vertices, square_mesh().faces, max_edge=0.05))  # spans the hole
     assert bridged_share(mesh, points) < 0.001
-    # faces farther than 3 spacings (~0.05) from the points: the hole but a rim, of area 4
+    # the faces farther than 2 spacings from the points: the hole but a rim, of area 4
     assert bridged_share(mesh, holed) == pytest.approx(np.pi * 0.35**2 / 4, rel=0.3)
 
 

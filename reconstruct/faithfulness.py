@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .metrics import distance_to_surface
+from .neighbors import plane_fits
 
 #: Share of unexplained points above which a one-chart mesh is reported as wrong.
 UNEXPLAINED_LIMIT = 0.05
@@ -47,10 +48,8 @@ def local_noise(points, k: int = _K, at=None) -> tuple[np.ndarray, np.ndarray]:
     at = points if at is None else np.asarray(at, dtype=np.float64)
     k = max(3, min(int(k), len(points) - 1))
     distances, indices = cKDTree(points).query(at, k=k + 1)
-    centred = points[indices] - points[indices].mean(axis=1, keepdims=True)
-    covariance = np.einsum("nki,nkj->nij", centred, centred) / (k + 1)
-    smallest = np.linalg.eigvalsh(covariance)[:, 0]
-    return np.sqrt(np.maximum(smallest, 0.0)), distances[:, 1:].mean(axis=1)
+    _, _, noise, _ = plane_fits(points[indices])
+    return noise, distances[:, 1:].mean(axis=1)
 
 
 def unexplained_fraction(mesh, points, factor: float = NOISE_FACTOR, k: int = _K) -> float:

@@ -17,11 +17,11 @@ Training is full-batch L-BFGS of the hidden layers of the nets of `networks.py`,
 output layer solved by least squares at every step (variable projection, `lbfgs.py`: torch
 computes the loss and its gradient, scipy's compiled L-BFGS-B takes the steps), with the torch,
 BLAS and OpenMP pools at one thread whatever the shell sets (`networks.one_torch_thread`). The
-chosen configuration is then trained to convergence from its searched weights and from a fresh
-start, and their mean is kept while the two agree (one MLP with the two side by side). That net is
+chosen configuration is then trained to convergence from its searched weights and from fresh
+starts, and the mean of those that agree is kept (one MLP with them side by side). That net is
 exported to ONNX with its normalisation inside; `predict` and meshing run on onnxruntime.
 
-About 470 lines: the search and its final fits share the samples, the random streams and the
+About 490 lines: the search and its final fits share the samples, the random streams and the
 stored errors, so they stay one estimator (the nets and their training loop are apart).
 """
 
@@ -54,8 +54,8 @@ log = logging.getLogger(__name__)
 
 ACTIVATIONS = ("tanh", "sigmoid", "relu", "elu", "softplus")
 SPLIT = (0.85, 0.10, 0.05)  # train, test, validation (the paper's)
-# The mean of the two final fits is kept only while their weighted errors agree within this
-# factor. Both fits' errors are mostly the noise, so 5 % more means a far worse fit of the
+# A final fit is averaged in only while its weighted error is within this factor of the best
+# one's. The fits' errors are mostly the noise, so 5 % more means a far worse fit of the
 # surface: averaging it in cost up to 1.5× the Chamfer distance of the better fit alone
 # (S-curve, 1,600 points, seeds 1 and 2), and a stalled fresh fit (7× the error) wrecked a mesh.
 MEAN_GUARD = 1.05

@@ -1,4 +1,5 @@
-"""The neighbourhood graph of a cloud, its connected pieces, and the automatic choice of K.
+"""The neighbourhood graph of a cloud, its connected pieces, the automatic choice of K, and the
+PCA planes of neighbourhoods.
 
 Choosing K (the paper names the lack of a heuristic as a weakness of its method):
 
@@ -36,6 +37,21 @@ K_MIN, K_MAX = 5, 20
 CANDIDATE_FACTORS = (1.0, 1.5, 2.0, 3.0, 4.0)
 NEAR_TIE_RELATIVE, NEAR_TIE_ABSOLUTE = 0.1, 1e-5
 SELECTION_LANDMARKS = 32
+
+
+def plane_fits(neighbourhoods: np.ndarray, weights: np.ndarray | None = None):
+    """Weighted PCA planes of (n, k, 3) neighbourhoods: centroids (n, 3), unit normals (n, 3),
+    RMS distance to the plane (n,) and planarity (n,) 1 − λ_min / λ_mid."""
+    if weights is None:
+        weights = np.ones(neighbourhoods.shape[:2])
+    total = np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
+    centroid = np.einsum("nk,nki->ni", weights, neighbourhoods) / total
+    centred = neighbourhoods - centroid[:, None, :]
+    covariance = np.einsum("nk,nki,nkj->nij", weights, centred, centred) / total[:, :, None]
+    values, vectors = np.linalg.eigh(covariance)
+    values = np.maximum(values, 0.0)
+    planarity = 1.0 - values[:, 0] / np.maximum(values[:, 1], 1e-300)
+    return centroid, vectors[:, :, 0], np.sqrt(values[:, 0]), planarity
 
 
 def nearest_neighbors(points, k: int) -> tuple[np.ndarray, np.ndarray]:

@@ -207,8 +207,9 @@ class SurfaceReconstructor(BaseEstimator):
         self.timings_.update(getattr(mlp, "timings_", {}))
         self._boundary_cache = {}
         self.remesh()
+        self.unexplained_ = unexplained_fraction(self.mesh_, self.points_)
         if warm_start is None and self.atlas == "auto":
-            if unexplained_fraction(self.mesh_, self.points_) > UNEXPLAINED_LIMIT:
+            if self.unexplained_ > UNEXPLAINED_LIMIT:
                 return self._fit_atlas(points, "one chart leaves too many points unexplained")
             if bridged_share(self.mesh_, self.points_) > BRIDGE_LIMIT:  # the piece it meshed
                 return self._fit_atlas(self.points_, "one chart's mesh spans holes in the data")
@@ -270,10 +271,10 @@ class SurfaceReconstructor(BaseEstimator):
         return float(np.median(distance[:, 1]))
 
     def _check_faithful(self) -> None:
-        """Measure how faithful the one-chart mesh is; warn when it cannot be (closed, curled
-        onto itself, layered): a wrong mesh is said, never returned silently."""
+        """Measure how faithful the one-chart mesh is (``unexplained_`` is measured by `fit`);
+        warn when it cannot be (closed, curled onto itself, layered): a wrong mesh is said,
+        never returned silently."""
         self.neighbour_preservation_ = neighbour_preservation(self.points_, self.embedding_)
-        self.unexplained_ = unexplained_fraction(self.mesh_, self.points_)
         if self.unexplained_ > UNEXPLAINED_LIMIT:
             warnings.warn(
                 f"the mesh leaves {100 * self.unexplained_:.0f} % of the points farther than "

@@ -25,27 +25,13 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from sklearn.base import BaseEstimator
 
+from .neighbors import plane_fits
 from .validation import check_points
 
 #: Otsu split of 40 offsets (median of 20k draws): one Gaussian layer 2.9 within-group widths,
 #: one uniform layer 3.6, two layers 3 σ apart 3.6, 4 σ apart 4.3. Averaged over a
 #: neighbourhood above this, a neighbourhood is two layers.
 LAYER_RATIO = 3.4
-
-
-def _plane_fits(neighbourhoods: np.ndarray, weights: np.ndarray | None = None):
-    """Weighted PCA planes of (n, k, 3) neighbourhoods: centroids (n, 3), unit normals (n, 3),
-    RMS distance to the plane (n,) and planarity (n,) 1 − λ_min / λ_mid."""
-    if weights is None:
-        weights = np.ones(neighbourhoods.shape[:2])
-    total = np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
-    centroid = np.einsum("nk,nki->ni", weights, neighbourhoods) / total
-    centred = neighbourhoods - centroid[:, None, :]
-    covariance = np.einsum("nk,nki,nkj->nij", weights, centred, centred) / total[:, :, None]
-    values, vectors = np.linalg.eigh(covariance)
-    values = np.maximum(values, 0.0)
-    planarity = 1.0 - values[:, 0] / np.maximum(values[:, 1], 1e-300)
-    return centroid, vectors[:, :, 0], np.sqrt(values[:, 0]), planarity
 
 
 def otsu_layers(offsets: np.ndarray):
@@ -112,7 +98,7 @@ class SheetGraph(BaseEstimator):
         k = max(2, min(int(self.n_neighbors), n_layer))
         distances, indices = cKDTree(points).query(points, k=n_layer + 1)
         neighbourhoods = points[indices]
-        _, normals, noise, planarity = _plane_fits(neighbourhoods)
+        _, normals, noise, planarity = plane_fits(neighbourhoods)
         layer_normals = normals.copy()
         offsets = np.einsum("nki,ni->nk", neighbourhoods - points[:, None, :], normals)
         threshold, ratio, upper, width = otsu_layers(offsets)
@@ -138,7 +124,7 @@ class SheetGraph(BaseEstimator):
         own_upper = upper[:, 0]
         if layered.any():
             own_side = upper[layered] == own_upper[layered, None]
-            _, normals_l, noise_l, planarity_l = _plane_fits(
+            _, normals_l, noise_l, planarity_l = plane_fits(
                 neighbourhoods[layered], own_side.astype(float))
             normals[layered], noise[layered] = normals_l, noise_l
             planarity[layered] = planarity_l

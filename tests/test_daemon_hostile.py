@@ -43,6 +43,8 @@ def test_post_answers_starting_while_the_device_has_not_answered_and_the_api_sta
         assert answer[0].status_code == 201, answer[0].text
         scan = answer[0].json()
         assert scan["state"] == "starting"
+        # the runner is built on the scan's own thread, after the POST has answered
+        wait_until(lambda: runners, timeout=10, what="the runner to be built")
         assert runners[0].started.wait(10)
         assert client.get("/healthz").json()["status"] == "ok"
         assert client.get(f"/api/v1/scans/{scan['id']}").json()["state"] == "starting"

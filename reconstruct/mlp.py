@@ -19,7 +19,8 @@ computes the loss and its gradient, scipy's compiled L-BFGS-B takes the steps), 
 BLAS and OpenMP pools at one thread whatever the shell sets (`networks.one_torch_thread`). The
 chosen configuration is then trained to convergence from its searched weights and from fresh
 starts, and the mean of those that agree is kept (one MLP with them side by side). That net is
-exported to ONNX with its normalisation inside; `predict` and meshing run on onnxruntime.
+written as ONNX with its normalisation inside (`onnx_writer`); `predict` and meshing run
+on onnxruntime.
 
 About 490 lines: the search and its final fits share the samples, the random streams and the
 stored errors, so they stay one estimator (the nets and their training loop are apart).
@@ -27,10 +28,8 @@ stored errors, so they stay one estimator (the nets and their training loop are 
 
 from __future__ import annotations
 
-import io
 import logging
 import time
-import warnings
 
 import numpy as np
 from sklearn.base import BaseEstimator
@@ -48,11 +47,11 @@ from .networks import (
     one_torch_thread,
     widen,
 )
+from .onnx_writer import ACTIVATIONS, mlp_model
 from .surface_map import OnnxSurfaceMap
 
 log = logging.getLogger(__name__)
 
-ACTIVATIONS = ("tanh", "sigmoid", "relu", "elu", "softplus")
 SPLIT = (0.85, 0.10, 0.05)  # train, test, validation (the paper's)
 # A final fit is averaged in only while its weighted error is within this factor of the best
 # one's. The fits' errors are mostly the noise, so 5 % more means a far worse fit of the
@@ -463,32 +462,9 @@ class AdaptiveMLP(BaseEstimator):
             setattr(self, f"{name}_error_", mse(self.torch_model_, *tensors[name]) * scale)
 
     def _export(self, net) -> bytes:
-        """ONNX bytes of ``x -> net((x - mean) / scale) * y_scale + y_mean``, dynamic batch."""
-        torch = load_torch()
-
-        class Normalised(torch.nn.Module):
-            def __init__(self, inner, x_mean, x_scale, y_mean, y_scale):
-                super().__init__()
-                self.inner = inner
-                for name, value in (("x_mean", x_mean), ("x_scale", x_scale),
-                                    ("y_mean", y_mean), ("y_scale", y_scale)):
-                    self.register_buffer(name, torch.from_numpy(np.asarray(value, np.float64)))
-
-            def forward(self, uv):
-                return self.inner((uv - self.x_mean) / self.x_scale) * self.y_scale + self.y_mean
-
-        wrapped = Normalised(net, self.x_mean_, self.x_scale_, self.y_mean_, self.y_scale_).eval()
-        buffer = io.BytesIO()
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            torch.onnx.export(
-                wrapped,
-                (torch.zeros(2, len(self.x_mean_), dtype=torch.float64),),
-                buffer,
-                dynamo=False,
-                input_names=["uv"],
-                output_names=["xyz"],
-                dynamic_axes={"uv": {0: "n"}, "xyz": {0: "n"}},
-                opset_version=17,
-            )
-        return buffer.getvalue()
+        """ONNX bytes of ``x -> net((x - mean) / scale) * y_scale + y_mean``, dynamic batch
+        (`onnx_writer`: no `onnx` import on the training path)."""
+        layers = [(layer.weight.detach().numpy().T, layer.bias.detach().numpy())
+                  for layer in linears(net)]
+        return mlp_model(layers, self.activation, self.x_mean_, self.x_scale_, self.y_mean_,
+                         self.y_scale_)

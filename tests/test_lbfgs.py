@@ -21,7 +21,7 @@ def samples(n=300, seed=0):
 def test_gradient_matches_central_differences(activation, layers):
     x, y = samples()
     net = build(layers, activation, 2, 3, torch.Generator().manual_seed(1))
-    flat = ProjectedMLP(net)
+    flat = ProjectedMLP(net, dtype="float64")
     theta = flat.theta()
     evaluate = flat.loss_and_gradient(x, y)
     _, gradient = evaluate(theta)
@@ -33,10 +33,21 @@ def test_gradient_matches_central_differences(activation, layers):
     assert np.abs(numeric - gradient).max() <= 1e-6 * np.abs(gradient).max()
 
 
+@pytest.mark.parametrize("activation", ACTIVATIONS)
+def test_single_precision_hidden_passes_give_the_double_loss_and_gradient(activation):
+    x, y = samples()
+    net = build((6, 4), activation, 2, 3, torch.Generator().manual_seed(2))
+    theta = ProjectedMLP(net).theta()
+    value, gradient = ProjectedMLP(net, dtype="float32").loss_and_gradient(x, y)(theta)
+    exact, exact_gradient = ProjectedMLP(net, dtype="float64").loss_and_gradient(x, y)(theta)
+    assert value == pytest.approx(exact, rel=1e-5)
+    assert np.abs(gradient - exact_gradient).max() <= 1e-3 * np.abs(exact_gradient).max()
+
+
 def test_projected_output_is_the_least_squares_fit_of_the_hidden_layer():
     x, y = samples()
     net = build((8,), "tanh", 2, 3, torch.Generator().manual_seed(3))
-    flat = ProjectedMLP(net)
+    flat = ProjectedMLP(net, dtype="float64")
     theta = flat.theta()
     flat.set(theta, flat.output_for(theta, x, y))
     with torch.no_grad():

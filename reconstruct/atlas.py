@@ -86,7 +86,7 @@ class AtlasReconstructor(BaseEstimator):
     def __init__(self, chart_size: int = 2500, overlap: float = 4.0, lam: float = 1.0,
                  depth: int = 2, reuse_layers: bool = True, max_splits: int = 2,
                  voxel: float = 0.5, band: float = 3.0, trim: float = 1.0, reach: float = 1.0,
-                 shell: float = 1.5, graph: SheetGraph | None = None,
+                 shell: float = 1.0, graph: SheetGraph | None = None,
                  random_state: int | None = 0):
         self.chart_size = chart_size
         self.overlap = overlap
@@ -191,19 +191,21 @@ class AtlasReconstructor(BaseEstimator):
         # Which side of each chart is outside the object (`exterior_votes`): a closed cloud's
         # charts say so clearly (mug, torus, hook, figurine 20k: 81–100 % of the samples);
         # an open one's, seen from both sides, do not (relief: none).
-        votes = exterior_votes(chart_samples_, chart_normals, voxel, band=self.band)
+        votes, two_sided = exterior_votes(chart_samples_, chart_normals, voxel, band=self.band)
         sizes = np.array([len(k) for k in kept], float)
         outward = np.abs(votes) >= VOTE_LIMIT
         self.votes_ = votes
         self.closed_ = bool(sizes[outward].sum() >= CLOSED_SHARE * max(sizes.sum(), 1.0))
         if self.closed_:
-            self.signs_ = np.where(outward, self.signs_ * np.sign(votes), self.signs_)
+            # the others keep their orientation along the overlaps, turned like most charts
+            turn = np.sign(np.sum(sizes[outward] * np.sign(votes[outward]))) or 1.0
+            self.signs_ = self.signs_ * np.where(outward, np.sign(votes), turn)
             samples, normals = [], []
-            for s, n, out, vote in zip(chart_samples_, chart_normals, outward, votes,
-                                       strict=True):
-                if out:
+            for s, n, out, vote, both in zip(chart_samples_, chart_normals, outward, votes,
+                                             two_sided, strict=True):
+                if out or both < VOTE_LIMIT:
                     samples.append(s)
-                    normals.append(np.sign(vote) * n)
+                    normals.append((np.sign(vote) if out else turn) * n)
                 else:  # a part thinner than the noise, charted once: a thin closed shell
                     shell = thin_shell(s, n, self.shell * voxel)
                     samples.append(shell[0])

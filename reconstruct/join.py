@@ -132,13 +132,14 @@ def exterior_grid(samples, voxel: float, band: float = 3.0, normals=None, pad=No
 
 
 def exterior_votes(chart_samples_, chart_normals, voxel: float, band: float = 3.0):
-    """How clearly each chart's normals point out of the object: (c,) in [−1, 1].
+    """Which side of each chart is outside the object.
 
     chart_samples_, chart_normals : c arrays (m_i, 3). A probe ``band + 1.5`` voxels along
-    each sample's normal and one against it are looked up in `exterior_grid` of all samples:
-    +1 when only the front probe is outside (the normal points out), −1 when only the back
-    one is, 0 when both are (a sheet seen from both sides: an open surface, or a part thinner
-    than the noise) or neither. Returns the charts' mean."""
+    each sample's normal and one against it are looked up in `exterior_grid` of all samples.
+    Returns votes (c,) in [−1, 1], the charts' mean of +1 when only the front probe is
+    outside (the normal points out), −1 when only the back one is, 0 otherwise; and
+    two_sided (c,), the share of samples with both probes outside (a sheet seen from both
+    sides: an open surface, or a part thinner than the noise charted once)."""
     everything = np.concatenate([s for s in chart_samples_ if len(s)])
     origin, shape, exterior, _ = exterior_grid(everything, voxel, band)
     step = (band + 1.5) * voxel
@@ -147,9 +148,13 @@ def exterior_votes(chart_samples_, chart_normals, voxel: float, band: float = 3.
         index = np.clip(np.floor((p - origin) / voxel + 0.5).astype(int), 0, shape - 1)
         return exterior[tuple(index.T)]
 
-    return np.array([
-        float(np.mean(outside(s + step * n).astype(float) - outside(s - step * n)))
-        if len(s) else 0.0 for s, n in zip(chart_samples_, chart_normals, strict=True)])
+    votes, two_sided = np.zeros(len(chart_samples_)), np.zeros(len(chart_samples_))
+    for index, (s, n) in enumerate(zip(chart_samples_, chart_normals, strict=True)):
+        if len(s):
+            front, back = outside(s + step * n), outside(s - step * n)
+            votes[index] = np.mean(front.astype(float) - back)
+            two_sided[index] = np.mean(front & back)
+    return votes, two_sided
 
 
 def thin_shell(samples, normals, half: float):

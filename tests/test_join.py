@@ -38,13 +38,15 @@ def test_exterior_votes_find_the_outside_of_each_chart():
     samples, normals = tube_samples()
     outer = samples[:, :2].__pow__(2).sum(axis=1) > 0.81
     charts = [samples[outer], samples[~outer]]
-    votes = exterior_votes(charts, [normals[outer], -normals[~outer]], 0.05)
+    votes, two_sided = exterior_votes(charts, [normals[outer], -normals[~outer]], 0.05)
+    assert two_sided.max() < 0.1
     assert votes[0] > 0.8 and votes[1] < -0.8  # the inner wall's normals were flipped
     # a single open sheet is outside on both sides: no vote
     rng = np.random.default_rng(1)
     sheet = np.c_[rng.uniform(-1, 1, (2000, 2)), np.zeros(2000)]
     up = np.tile([0.0, 0.0, 1.0], (2000, 1))
-    assert abs(exterior_votes([sheet], [up], 0.05)[0]) < 0.1
+    votes, two_sided = exterior_votes([sheet], [up], 0.05)
+    assert abs(votes[0]) < 0.1 and two_sided[0] > 0.9
 
 
 def test_a_sheet_joined_as_a_thin_shell_is_closed():

@@ -28,6 +28,13 @@ from scipy.spatial import cKDTree
 _IMLS_NEIGHBOURS = 8
 #: Voxels from the nearest sample within which a closed join trusts the tangent planes alone.
 _TRUSTED = 1.0
+#: A closed join opens its signed grid (grey opening, a cube of this many voxels: thin voids
+#: between two solids, sub-voxel tunnels, go) and smooths it (Gaussian, this many voxels)
+#: before marching cubes. Cached 20k charts at σ 0.5 %, Euler with neither / with both:
+#: figurine −28 / 2 (object 2; Chamfer 0.177 / 0.166, denoise 0.58 / 0.36), hook 2 / 2,
+#: torus 0 / 0.
+_OPEN = 3
+_SMOOTH = 0.8
 
 
 def chart_samples(meshes, labels, points, reach: float = np.inf):
@@ -214,6 +221,10 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         blend = np.clip(d[:, 0] / voxel - _TRUSTED, 0.0, 1.0)[:, None].ravel()
         values[near] = (1 - blend) * values[near] + blend * closing
     values = values.reshape(shape)
+    if closed and _OPEN:
+        values = ndimage.grey_opening(values, size=(_OPEN,) * 3)
+    if closed and _SMOOTH:
+        values = ndimage.gaussian_filter(values, _SMOOTH)
     mask = None if closed else (distance <= band * voxel).reshape(shape)
     vertices, faces, _, _ = marching_cubes(values, level=0.0, spacing=(voxel,) * 3, mask=mask,
                                            gradient_direction="ascent", allow_degenerate=False)

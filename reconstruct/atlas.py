@@ -79,8 +79,9 @@ class AtlasReconstructor(BaseEstimator):
     (`ChartDecomposition`), ``signs_`` (c,) ±1 orientation of each chart, ``mesh_``
     (trimesh.Trimesh), ``faults_`` one line per chart kept though unfaithful,
     ``watertight_``, ``euler_``, ``winding_consistent_``, ``timings_`` seconds per stage,
-    ``votes_`` (c,) each chart's exterior vote, ``closed_`` whether the cloud was joined as the
-    boundary of a volume (then a mesh that is not watertight is warned about).
+    ``votes_`` (c,) each chart's exterior vote (with a band of ``seal_`` voxels), ``closed_``
+    whether the cloud was joined as the boundary of a volume (then a mesh that is not
+    watertight is warned about).
     """
 
     def __init__(self, chart_size: int = 2500, overlap: float = 4.0, lam: float = 1.0,
@@ -191,11 +192,16 @@ class AtlasReconstructor(BaseEstimator):
         # Which side of each chart is outside the object (`exterior_votes`): a closed cloud's
         # charts say so clearly (mug, torus, hook, figurine 20k: 81–100 % of the samples);
         # an open one's, seen from both sides, do not (relief: none).
-        votes, two_sided = exterior_votes(chart_samples_, chart_normals, voxel, band=self.band)
+        # A hole in the samples wider than twice the band (points the sheet graph left out)
+        # lets the outside in and every chart looks two-sided: a wider seal is tried too.
         sizes = np.array([len(k) for k in kept], float)
-        outward = np.abs(votes) >= VOTE_LIMIT
-        self.votes_ = votes
-        self.closed_ = bool(sizes[outward].sum() >= CLOSED_SHARE * max(sizes.sum(), 1.0))
+        for seal in (self.band, 2 * self.band):
+            votes, two_sided = exterior_votes(chart_samples_, chart_normals, voxel, band=seal)
+            outward = np.abs(votes) >= VOTE_LIMIT
+            self.closed_ = bool(sizes[outward].sum() >= CLOSED_SHARE * max(sizes.sum(), 1.0))
+            if self.closed_:
+                break
+        self.votes_, self.seal_ = votes, seal
         if self.closed_:
             # the others keep their orientation along the overlaps, turned like most charts
             turn = np.sign(np.sum(sizes[outward] * np.sign(votes[outward]))) or 1.0
@@ -214,7 +220,7 @@ class AtlasReconstructor(BaseEstimator):
             samples, normals = chart_samples_, chart_normals
         samples, normals = np.concatenate(samples), np.concatenate(normals)
         self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim,
-                                   closed=self.closed_)
+                                   closed=self.closed_, seal=seal)
         self.samples_, self.normals_ = samples, normals
         self.watertight_ = bool(self.mesh_.is_watertight)
         self.winding_consistent_ = bool(self.mesh_.is_winding_consistent)

@@ -174,7 +174,7 @@ def thin_shell(samples, normals, half: float):
 
 def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float = 1.5,
                   min_share: float = 0.005, data=None, hole: float = 12.0,
-                  closed: bool = False) -> trimesh.Trimesh:
+                  closed: bool = False, seal: float | None = None) -> trimesh.Trimesh:
     """One mesh through oriented samples (m, 3) with unit normals (m, 3).
 
     voxel : grid spacing; band : the surface is sought within ``band`` voxels of a sample;
@@ -187,13 +187,16 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     closed : the samples enclose a volume (their normals point out of it). The whole grid is
     then signed: nodes beyond the band get the side `exterior_grid` finds, so a gap between
     the samples is closed across rather than left open, and nothing is trimmed: the surface
-    is the boundary of a volume (watertight, manifold where marching cubes is)."""
+    is the boundary of a volume (watertight, manifold where marching cubes is);
+    seal : the band (voxels) of `exterior_grid` in a closed join (default ``band``): gaps
+    between the samples narrower than twice this are capped."""
     from skimage.measure import marching_cubes  # scikit-image: only on the joining path
 
     samples = np.asarray(samples, float)
     normals = np.asarray(normals, float)
     if closed:
-        origin, shape, exterior, free = exterior_grid(samples, voxel, band, normals)
+        seal = band if seal is None else seal
+        origin, shape, exterior, free = exterior_grid(samples, voxel, seal, normals)
     else:
         origin, shape = _grid(samples, voxel, band + 2)
     axes = [origin[i] + voxel * np.arange(shape[i]) for i in range(3)]
@@ -203,9 +206,9 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         from scipy import ndimage
 
         near = ~free.ravel()
-        # The closing of the samples by the band (Serra 1982): band voxels in from the exterior.
-        # It caps a gap between the samples near their level instead of at the band's edge.
-        values = np.clip(band * voxel - voxel * ndimage.distance_transform_edt(~exterior),
+        # The closing of the samples by the seal (Serra 1982): seal voxels in from the exterior.
+        # It caps a gap between the samples near their level instead of at the seal's edge.
+        values = np.clip(seal * voxel - voxel * ndimage.distance_transform_edt(~exterior),
                          -(band + 1) * voxel, (band + 1) * voxel).ravel()
         closing = values[near]
     else:

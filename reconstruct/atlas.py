@@ -40,6 +40,8 @@ FOLD_LIMIT = 0.02
 _FOLD_ANGLE = np.radians(120)
 #: A chart faces out of the object when its exterior vote (`join.exterior_votes`) is this clear.
 VOTE_LIMIT = 0.5
+#: Input points farther than this (median spacings) from every joined sample are uncharted.
+UNCHARTED = 1.0
 #: The cloud is closed when charts facing clearly out hold this share of the join's samples.
 CLOSED_SHARE = 0.5
 
@@ -219,8 +221,9 @@ class AtlasReconstructor(BaseEstimator):
         else:
             samples, normals = chart_samples_, chart_normals
         samples, normals = np.concatenate(samples), np.concatenate(normals)
+        uncharted = self._uncharted(samples) if self.closed_ else None
         self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim,
-                                   closed=self.closed_, seal=seal)
+                                   closed=self.closed_, seal=seal, uncharted=uncharted)
         self.samples_, self.normals_ = samples, normals
         self.watertight_ = bool(self.mesh_.is_watertight)
         self.winding_consistent_ = bool(self.mesh_.is_winding_consistent)
@@ -229,6 +232,19 @@ class AtlasReconstructor(BaseEstimator):
             warnings.warn("the cloud looks closed (its charts face out of one volume) but the "
                           "joined mesh is not watertight", ReconstructionWarning, stacklevel=3)
         self.timings_["join"] = time.perf_counter() - started
+
+    def _uncharted(self, samples: np.ndarray) -> np.ndarray:
+        """Input points (p, 3) farther than ``UNCHARTED`` spacings from every sample, in
+        clusters of at least 4 within 2 spacings: data the charts left out (a junction where
+        the sheet graph cut its points off), not single noisy points."""
+        from scipy.spatial import cKDTree
+
+        spacing = self.decomposition_.spacing_
+        far = self.points_[cKDTree(samples).query(self.points_)[0] > UNCHARTED * spacing]
+        if len(far) < 4:
+            return far[:0]
+        crowd = cKDTree(far).query_ball_point(far, 2 * spacing, return_length=True)
+        return far[crowd >= 4]
 
     def remesh(self, **params) -> trimesh.Trimesh:
         """Re-mesh every chart with new ``lam``, ``depth``, ... through its ONNX map (no

@@ -103,21 +103,26 @@ def _grid(samples: np.ndarray, voxel: float, pad: float):
     return origin, shape
 
 
-def exterior_grid(samples, voxel: float, band: float = 3.0, normals=None, pad=None):
+def exterior_grid(samples, voxel: float, band: float = 3.0, normals=None, pad=None,
+                  extra=None):
     """Which nodes of a grid round ``samples`` (m, 3) lie outside the sampled surface.
 
     A node farther than ``band`` voxels from every sample is *free*; the free nodes connected
     to the grid's border are exterior. A free pocket enclosed by the samples (the inside of a
     closed object, or a concave nook the band closed off) is exterior when the nearest
     samples' tangent planes, oriented by ``normals`` (m, 3), put most of its nodes in front
-    (without normals: never). Returns origin (3,), shape (3,), exterior and free, bool
-    arrays of ``shape``."""
+    (without normals: never). ``extra`` (p, 3): points that occupy the grid like samples
+    (data no chart represents), outside the grid ignored. Returns origin (3,), shape (3,),
+    exterior and free, bool arrays of ``shape``."""
     from scipy import ndimage
 
     samples = np.asarray(samples, float)
     origin, shape = _grid(samples, voxel, band + 3 if pad is None else pad)
     occupied = np.zeros(shape, bool)
     occupied[tuple(np.floor((samples - origin) / voxel + 0.5).astype(int).T)] = True
+    if extra is not None and len(extra):
+        nodes = np.floor((np.asarray(extra, float) - origin) / voxel + 0.5).astype(int)
+        occupied[tuple(nodes[np.all((nodes >= 0) & (nodes < shape), axis=1)].T)] = True
     free = ndimage.distance_transform_edt(~occupied) > band
     pieces, _ = ndimage.label(free)
     faces = [pieces[0], pieces[-1], pieces[:, 0], pieces[:, -1], pieces[:, :, 0],
@@ -174,7 +179,8 @@ def thin_shell(samples, normals, half: float):
 
 def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float = 1.5,
                   min_share: float = 0.005, data=None, hole: float = 12.0,
-                  closed: bool = False, seal: float | None = None) -> trimesh.Trimesh:
+                  closed: bool = False, seal: float | None = None,
+                  uncharted=None) -> trimesh.Trimesh:
     """One mesh through oriented samples (m, 3) with unit normals (m, 3).
 
     voxel : grid spacing; band : the surface is sought within ``band`` voxels of a sample;
@@ -189,14 +195,18 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     the samples is closed across rather than left open, and nothing is trimmed: the surface
     is the boundary of a volume (watertight, manifold where marching cubes is);
     seal : the band (voxels) of `exterior_grid` in a closed join (default ``band``): gaps
-    between the samples narrower than twice this are capped."""
+    between the samples narrower than twice this are capped;
+    uncharted : (p, 3) data points no chart's samples represent (a junction the charts left
+    out): in a closed join they occupy the grid like samples, so the cap across their gap
+    passes by them."""
     from skimage.measure import marching_cubes  # scikit-image: only on the joining path
 
     samples = np.asarray(samples, float)
     normals = np.asarray(normals, float)
     if closed:
         seal = band if seal is None else seal
-        origin, shape, exterior, free = exterior_grid(samples, voxel, seal, normals)
+        origin, shape, exterior, free = exterior_grid(samples, voxel, seal, normals,
+                                                      extra=uncharted)
     else:
         origin, shape = _grid(samples, voxel, band + 2)
     axes = [origin[i] + voxel * np.arange(shape[i]) for i in range(3)]

@@ -73,3 +73,16 @@ def test_sheets_touching_along_an_edge_are_parted():
     assert len(parted.vertices) == len(touching.vertices) + 2
     sphere = trimesh.creation.icosphere(2)
     assert split_nonmanifold(sphere) is sphere
+
+
+def test_data_no_chart_represents_keeps_a_closed_join_whole():
+    # the tube's wall has no samples round its middle (z 0.8–1.2, wider than twice the band):
+    # the join closes each half apart, unless the data points there occupy the gap
+    samples, normals = tube_samples()
+    middle = np.abs(samples[:, 2] - 1.0) < 0.2
+    apart = implicit_mesh(samples[~middle], normals[~middle], 0.05, closed=True)
+    whole = implicit_mesh(samples[~middle], normals[~middle], 0.05, closed=True,
+                          uncharted=samples[middle])
+    assert len(apart.split(only_watertight=False)) == 2
+    assert whole.is_watertight and len(whole.split(only_watertight=False)) == 1
+    assert whole.euler_number == 0

@@ -8,9 +8,12 @@ ONNX map; the first chart's searched layer widths and K are reused by the others
 train without a search), and accepts a chart only when it is faithful: its mesh leaves at most
 `UNEXPLAINED_LIMIT` of its points unexplained and does not fold over (`fold_share`); otherwise
 the chart is split and fitted again (at most ``max_splits`` times along one line of descent).
-The accepted charts' meshes, trimmed to a partition of the cloud, oriented alike and joined by
-`reconstruct.join.implicit_mesh`, give ``mesh_``: watertight where the cloud is closed, open
-where the data has a border or a hole wider than a few spacings.
+The accepted charts' meshes, trimmed to a partition of the cloud, oriented alike (along their
+overlaps, and by which side of each is outside: `reconstruct.join.exterior_votes`) and joined by
+`reconstruct.join.implicit_mesh`, give ``mesh_``: when the charts enclose a volume, its
+boundary (watertight; a part thinner than the noise, charted as one sheet, as a thin shell;
+a warning if it still is not watertight); otherwise open where the data has a border or a hole
+wider than a few spacings.
 
 `remesh(lam=..., depth=...)` re-meshes every chart through its stored ONNX map (no retraining)
 and joins them again.

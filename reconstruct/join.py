@@ -6,11 +6,22 @@ their vertices are samples of the fitted networks' surfaces, each with its mesh 
 `orient_charts` makes the normals agree across charts: neighbouring charts compare their normals
 at the points they share and a maximum spanning tree of that agreement propagates the flips
 (Hoppe et al. 1992 propagate over points; here over charts, whose insides are already
-consistent). `implicit_mesh` evaluates an implicit moving-least-squares distance (Kolluri 2005:
-the Gaussian-weighted mean of the signed distances to the nearest samples' tangent planes) on a
-voxel grid near the samples and extracts its zero level with scikit-image's marching cubes:
-closed where the samples close, and faces farther than ``trim`` voxels from every sample
-dropped, so borders and holes wider than a few spacings stay open.
+consistent). Across a thin wall (a mug's inside and outside) charts share no points, so
+`exterior_votes` also asks each chart which of its sides is outside: the grid nodes farther
+than a band from every sample and connected to the grid's border (`exterior_grid`) are outside;
+a probe along each normal and one against it are looked up there. A cloud whose charts mostly
+answer clearly encloses a volume (closed); an open surface's charts are outside on both sides.
+
+`implicit_mesh` evaluates an implicit moving-least-squares distance (Kolluri 2005: the
+Gaussian-weighted mean of the signed distances to the nearest samples' tangent planes) near the
+samples and extracts its zero level with scikit-image's marching cubes.
+- Open: only within a band of the samples, faces farther than ``trim`` voxels from every sample
+  dropped, so borders and holes wider than a few spacings stay open.
+- Closed: the whole grid is signed. Beyond a voxel or two from the samples the value is the
+  morphological closing of the samples (band voxels in from the exterior), so a gap between
+  charts narrower than twice the band is capped near its data, never left open; the grid is
+  opened and smoothed by a voxel (no sub-voxel tunnels), and vertices where two sheets touch
+  are split (`split_nonmanifold`): the mesh is the boundary of a volume, watertight.
 """
 
 from __future__ import annotations

@@ -20,9 +20,8 @@ samples and extracts its zero level with scikit-image's marching cubes.
 - Closed: the whole grid is signed. Beyond a voxel or two from the samples the value is the
   morphological closing of the samples (band voxels in from the exterior), so a gap between
   charts narrower than twice the band is capped near its data, never left open; the grid is
-  opened, closed (away from thin shells) and smoothed by a voxel or two (no sub-voxel tunnels
-  or strands), and vertices where two sheets touch are split (`split_nonmanifold`): the mesh
-  is the boundary of a volume, watertight.
+  opened and smoothed by a voxel (no sub-voxel tunnels), and vertices where two sheets touch
+  are split (`split_nonmanifold`): the mesh is the boundary of a volume, watertight.
 """
 
 from __future__ import annotations
@@ -46,9 +45,6 @@ _TRUSTED = 1.0
 #: figurine −28 / 2 (object 2; Chamfer 0.177 / 0.166, denoise 0.58 / 0.36), hook 2 / 2,
 #: torus 0 / 0.
 _OPEN = 3
-#: ... then closes it (grey closing, a cube of this many voxels) except within two bands of a
-#: thin shell's samples (a shell is about two voxels thick): strands of solid thinner than a
-#: voxel go. Bench mug seed 1 (SurfaceReconstructor's charts): Euler −2 / 0 without / with.
 _CLOSE = 2
 _SMOOTH = 0.8
 

@@ -211,26 +211,22 @@ class AtlasReconstructor(BaseEstimator):
             # the others keep their orientation along the overlaps, turned like most charts
             turn = np.sign(np.sum(sizes[outward] * np.sign(votes[outward]))) or 1.0
             self.signs_ = self.signs_ * np.where(outward, np.sign(votes), turn)
-            samples, normals, thin = [], [], []
+            samples, normals = [], []
             for s, n, out, vote, both in zip(chart_samples_, chart_normals, outward, votes,
                                              two_sided, strict=True):
                 if out or both < VOTE_LIMIT:
                     samples.append(s)
                     normals.append((np.sign(vote) if out else turn) * n)
-                    thin.append(np.zeros(len(s), bool))
                 else:  # a part thinner than the noise, charted once: a thin closed shell
                     shell = thin_shell(s, n, self.shell * voxel)
                     samples.append(shell[0])
                     normals.append(shell[1])
-                    thin.append(np.ones(len(shell[0]), bool))
-            thin = np.concatenate(thin)
         else:
-            samples, normals, thin = chart_samples_, chart_normals, None
+            samples, normals = chart_samples_, chart_normals
         samples, normals = np.concatenate(samples), np.concatenate(normals)
         uncharted = self._uncharted(samples) if self.closed_ else None
         self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim,
-                                   closed=self.closed_, seal=seal, uncharted=uncharted,
-                                   thin=thin)
+                                   closed=self.closed_, seal=seal, uncharted=uncharted)
         self.samples_, self.normals_ = samples, normals
         self.watertight_ = bool(self.mesh_.is_watertight)
         self.winding_consistent_ = bool(self.mesh_.is_winding_consistent)

@@ -45,7 +45,6 @@ _TRUSTED = 1.0
 #: figurine −28 / 2 (object 2; Chamfer 0.177 / 0.166, denoise 0.58 / 0.36), hook 2 / 2,
 #: torus 0 / 0.
 _OPEN = 3
-_CLOSE = 2
 _SMOOTH = 0.8
 
 
@@ -192,7 +191,7 @@ def thin_shell(samples, normals, half: float):
 def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float = 1.5,
                   min_share: float = 0.005, data=None, hole: float = 12.0,
                   closed: bool = False, seal: float | None = None,
-                  uncharted=None, thin=None) -> trimesh.Trimesh:
+                  uncharted=None) -> trimesh.Trimesh:
     """One mesh through oriented samples (m, 3) with unit normals (m, 3).
 
     voxel : grid spacing; band : the surface is sought within ``band`` voxels of a sample;
@@ -210,8 +209,7 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     between the samples narrower than twice this are capped;
     uncharted : (p, 3) data points no chart's samples represent (a junction the charts left
     out): in a closed join they occupy the grid like samples, so the cap across their gap
-    passes by them; thin : (m,) bool, the samples of thin shells (`thin_shell`), which
-    the closed join's grey closing leaves alone."""
+    passes by them."""
     from skimage.measure import marching_cubes  # scikit-image: only on the joining path
 
     samples = np.asarray(samples, float)
@@ -249,16 +247,6 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     values = values.reshape(shape)
     if closed and _OPEN:
         values = ndimage.grey_opening(values, size=(_OPEN,) * 3)
-    if closed and _CLOSE:
-        # strands of solid thinner than the closing go, except round the thin shells
-        closing = ndimage.grey_closing(values, size=(_CLOSE,) * 3)
-        if thin is not None and np.any(thin):
-            occupied = np.zeros(shape, bool)
-            nodes = np.floor((samples[np.asarray(thin, bool)] - origin) / voxel + 0.5)
-            occupied[tuple(nodes.astype(int).T)] = True
-            shelled = ndimage.distance_transform_edt(~occupied) <= 2 * band
-            closing = np.where(shelled, values, closing)
-        values = closing
     if closed and _SMOOTH:
         values = ndimage.gaussian_filter(values, _SMOOTH)
     mask = None if closed else (distance <= band * voxel).reshape(shape)

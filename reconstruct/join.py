@@ -6,11 +6,22 @@ their vertices are samples of the fitted networks' surfaces, each with its mesh 
 `orient_charts` makes the normals agree across charts: neighbouring charts compare their normals
 at the points they share and a maximum spanning tree of that agreement propagates the flips
 (Hoppe et al. 1992 propagate over points; here over charts, whose insides are already
-consistent). `implicit_mesh` evaluates an implicit moving-least-squares distance (Kolluri 2005:
-the Gaussian-weighted mean of the signed distances to the nearest samples' tangent planes) on a
-voxel grid near the samples and extracts its zero level with scikit-image's marching cubes:
-closed where the samples close, and faces farther than ``trim`` voxels from every sample
-dropped, so borders and holes wider than a few spacings stay open.
+consistent). Across a thin wall (a mug's inside and outside) charts share no points, so
+`exterior_votes` also asks each chart which of its sides is outside: the grid nodes farther
+than a band from every sample and connected to the grid's border (`exterior_grid`) are outside;
+a probe along each normal and one against it are looked up there. A cloud whose charts mostly
+answer clearly encloses a volume (closed); an open surface's charts are outside on both sides.
+
+`implicit_mesh` evaluates an implicit moving-least-squares distance (Kolluri 2005: the
+Gaussian-weighted mean of the signed distances to the nearest samples' tangent planes) near the
+samples and extracts its zero level with scikit-image's marching cubes.
+- Open: only within a band of the samples, faces farther than ``trim`` voxels from every sample
+  dropped, so borders and holes wider than a few spacings stay open.
+- Closed: the whole grid is signed. Beyond a voxel or two from the samples the value is the
+  morphological closing of the samples (band voxels in from the exterior), so a gap between
+  charts narrower than twice the band is capped near its data, never left open; the grid is
+  opened and smoothed by a voxel (no sub-voxel tunnels), and vertices where two sheets touch
+  are split (`split_nonmanifold`): the mesh is the boundary of a volume, watertight.
 """
 
 from __future__ import annotations
@@ -18,10 +29,23 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+from scipy.sparse.csgraph import (
+    breadth_first_order,
+    connected_components,
+    minimum_spanning_tree,
+)
 from scipy.spatial import cKDTree
 
 _IMLS_NEIGHBOURS = 8
+#: Voxels from the nearest sample within which a closed join trusts the tangent planes alone.
+_TRUSTED = 1.0
+#: A closed join opens its signed grid (grey opening, a cube of this many voxels: thin voids
+#: between two solids, sub-voxel tunnels, go) and smooths it (Gaussian, this many voxels)
+#: before marching cubes. Cached 20k charts at σ 0.5 %, Euler with neither / with both:
+#: figurine −28 / 2 (object 2; Chamfer 0.177 / 0.166, denoise 0.58 / 0.36), hook 2 / 2,
+#: torus 0 / 0.
+_OPEN = 3
+_SMOOTH = 0.8
 
 
 def chart_samples(meshes, labels, points, reach: float = np.inf):
@@ -83,8 +107,91 @@ def orient_charts(meshes, charts, points) -> np.ndarray:
     return signs
 
 
+def _grid(samples: np.ndarray, voxel: float, pad: float):
+    """Origin (3,) and shape (3,) of a grid of spacing ``voxel`` round ``samples`` (m, 3)."""
+    origin = samples.min(axis=0) - pad * voxel
+    shape = np.ceil((samples.max(axis=0) + pad * voxel - origin) / voxel).astype(int) + 1
+    return origin, shape
+
+
+def exterior_grid(samples, voxel: float, band: float = 3.0, normals=None, pad=None,
+                  extra=None):
+    """Which nodes of a grid round ``samples`` (m, 3) lie outside the sampled surface.
+
+    A node farther than ``band`` voxels from every sample is *free*; the free nodes connected
+    to the grid's border are exterior. A free pocket enclosed by the samples (the inside of a
+    closed object, or a concave nook the band closed off) is exterior when the nearest
+    samples' tangent planes, oriented by ``normals`` (m, 3), put most of its nodes in front
+    (without normals: never). ``extra`` (p, 3): points that occupy the grid like samples
+    (data no chart represents), outside the grid ignored. Returns origin (3,), shape (3,),
+    exterior and free, bool arrays of ``shape``."""
+    from scipy import ndimage
+
+    samples = np.asarray(samples, float)
+    origin, shape = _grid(samples, voxel, band + 3 if pad is None else pad)
+    occupied = np.zeros(shape, bool)
+    occupied[tuple(np.floor((samples - origin) / voxel + 0.5).astype(int).T)] = True
+    if extra is not None and len(extra):
+        nodes = np.floor((np.asarray(extra, float) - origin) / voxel + 0.5).astype(int)
+        occupied[tuple(nodes[np.all((nodes >= 0) & (nodes < shape), axis=1)].T)] = True
+    free = ndimage.distance_transform_edt(~occupied) > band
+    pieces, _ = ndimage.label(free)
+    faces = [pieces[0], pieces[-1], pieces[:, 0], pieces[:, -1], pieces[:, :, 0],
+             pieces[:, :, -1]]
+    outside = np.unique(np.concatenate([f.ravel() for f in faces]))
+    outside = outside[outside > 0]
+    if normals is not None and pieces.max() > 0:
+        enclosed = free & ~np.isin(pieces, outside)
+        if enclosed.any():
+            nodes = np.argwhere(enclosed)
+            nearest = cKDTree(samples).query(origin + voxel * nodes)[1]
+            front = np.einsum("gi,gi->g", origin + voxel * nodes - samples[nearest],
+                              np.asarray(normals, float)[nearest]) > 0
+            label = pieces[enclosed]
+            share = np.bincount(label, front, minlength=pieces.max() + 1) / np.maximum(
+                np.bincount(label, minlength=pieces.max() + 1), 1)
+            outside = np.union1d(outside, np.flatnonzero(share > 0.5))
+    return origin, shape, np.isin(pieces, outside) & free, free
+
+
+def exterior_votes(chart_samples_, chart_normals, voxel: float, band: float = 3.0):
+    """Which side of each chart is outside the object.
+
+    chart_samples_, chart_normals : c arrays (m_i, 3). A probe ``band + 1.5`` voxels along
+    each sample's normal and one against it are looked up in `exterior_grid` of all samples.
+    Returns votes (c,) in [−1, 1], the charts' mean of +1 when only the front probe is
+    outside (the normal points out), −1 when only the back one is, 0 otherwise; and
+    two_sided (c,), the share of samples with both probes outside (a sheet seen from both
+    sides: an open surface, or a part thinner than the noise charted once)."""
+    everything = np.concatenate([s for s in chart_samples_ if len(s)])
+    origin, shape, exterior, _ = exterior_grid(everything, voxel, band)
+    step = (band + 1.5) * voxel
+
+    def outside(p):
+        index = np.clip(np.floor((p - origin) / voxel + 0.5).astype(int), 0, shape - 1)
+        return exterior[tuple(index.T)]
+
+    votes, two_sided = np.zeros(len(chart_samples_)), np.zeros(len(chart_samples_))
+    for index, (s, n) in enumerate(zip(chart_samples_, chart_normals, strict=True)):
+        if len(s):
+            front, back = outside(s + step * n), outside(s - step * n)
+            votes[index] = np.mean(front.astype(float) - back)
+            two_sided[index] = np.mean(front & back)
+    return votes, two_sided
+
+
+def thin_shell(samples, normals, half: float):
+    """A closed shell of thickness 2 ``half`` round a sheet sampled once (m, 3) with normals
+    (m, 3): its samples moved ``half`` along and against their normals, facing away from the
+    sheet. Returns samples (2m, 3) and normals (2m, 3)."""
+    return (np.concatenate([samples + half * normals, samples - half * normals]),
+            np.concatenate([normals, -normals]))
+
+
 def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float = 1.5,
-                  min_share: float = 0.005, data=None, hole: float = 12.0) -> trimesh.Trimesh:
+                  min_share: float = 0.005, data=None, hole: float = 12.0,
+                  closed: bool = False, seal: float | None = None,
+                  uncharted=None) -> trimesh.Trimesh:
     """One mesh through oriented samples (m, 3) with unit normals (m, 3).
 
     voxel : grid spacing; band : the surface is sought within ``band`` voxels of a sample;
@@ -93,45 +200,108 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     where data exists (a sharp edge no chart reached) are closed;
     min_share : pieces with fewer faces than this share of the largest are dropped;
     hole : border loops shorter than ``hole`` voxels are capped (`close_small_holes`): pinholes
-    where no chart's samples reached, not holes in the data (12 voxels: under 4 across)."""
+    where no chart's samples reached, not holes in the data (12 voxels: under 4 across);
+    closed : the samples enclose a volume (their normals point out of it). The whole grid is
+    then signed: nodes beyond the band get the side `exterior_grid` finds, so a gap between
+    the samples is closed across rather than left open, and nothing is trimmed: the surface
+    is the boundary of a volume (watertight, manifold where marching cubes is);
+    seal : the band (voxels) of `exterior_grid` in a closed join (default ``band``): gaps
+    between the samples narrower than twice this are capped;
+    uncharted : (p, 3) data points no chart's samples represent (a junction the charts left
+    out): in a closed join they occupy the grid like samples, so the cap across their gap
+    passes by them."""
     from skimage.measure import marching_cubes  # scikit-image: only on the joining path
 
     samples = np.asarray(samples, float)
     normals = np.asarray(normals, float)
-    pad = band + 2
-    origin = samples.min(axis=0) - pad * voxel
-    shape = np.ceil((samples.max(axis=0) + pad * voxel - origin) / voxel).astype(int) + 1
+    if closed:
+        seal = band if seal is None else seal
+        origin, shape, exterior, free = exterior_grid(samples, voxel, seal, normals,
+                                                      extra=uncharted)
+    else:
+        origin, shape = _grid(samples, voxel, band + 2)
     axes = [origin[i] + voxel * np.arange(shape[i]) for i in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     tree = cKDTree(samples)
-    distance, nearest = tree.query(grid, distance_upper_bound=(band + 1) * voxel)
-    near = np.isfinite(distance)
-    values = np.full(len(grid), voxel * (band + 1))
+    if closed:
+        from scipy import ndimage
+
+        near = ~free.ravel()
+        # The closing of the samples by the seal (Serra 1982): seal voxels in from the exterior.
+        # It caps a gap between the samples near their level instead of at the seal's edge.
+        values = np.clip(seal * voxel - voxel * ndimage.distance_transform_edt(~exterior),
+                         -(band + 1) * voxel, (band + 1) * voxel).ravel()
+        closing = values[near]
+    else:
+        distance, _ = tree.query(grid, distance_upper_bound=(band + 1) * voxel)
+        near = np.isfinite(distance)
+        values = np.full(len(grid), voxel * (band + 1))
     k = min(_IMLS_NEIGHBOURS, len(samples))
     d, index = tree.query(grid[near], k=k)
     offsets = np.einsum("gki,gki->gk", grid[near][:, None, :] - samples[index], normals[index])
     weights = np.exp(-(d / (1.5 * voxel)) ** 2)
     values[near] = (weights * offsets).sum(axis=1) / np.maximum(weights.sum(axis=1), 1e-300)
-    # far from the samples: the side the nearest sample's plane puts the node on
+    if closed:  # the tangent planes within a voxel of a sample, the closing from two on
+        blend = np.clip(d[:, 0] / voxel - _TRUSTED, 0.0, 1.0)[:, None].ravel()
+        values[near] = (1 - blend) * values[near] + blend * closing
     values = values.reshape(shape)
-    mask = (distance <= band * voxel).reshape(shape)
+    if closed and _OPEN:
+        values = ndimage.grey_opening(values, size=(_OPEN,) * 3)
+    if closed and _SMOOTH:
+        values = ndimage.gaussian_filter(values, _SMOOTH)
+    mask = None if closed else (distance <= band * voxel).reshape(shape)
     vertices, faces, _, _ = marching_cubes(values, level=0.0, spacing=(voxel,) * 3, mask=mask,
                                            gradient_direction="ascent", allow_degenerate=False)
     mesh = trimesh.Trimesh(vertices + origin, faces, process=True)
     if len(mesh.faces) == 0:
         return mesh
-    near_tree = tree if data is None else cKDTree(np.asarray(data, float))
-    far = near_tree.query(mesh.triangles_center)[0] > trim * voxel
-    mesh.update_faces(~far)
-    mesh.remove_unreferenced_vertices()
+    if not closed:
+        near_tree = tree if data is None else cKDTree(np.asarray(data, float))
+        far = near_tree.query(mesh.triangles_center)[0] > trim * voxel
+        mesh.update_faces(~far)
+        mesh.remove_unreferenced_vertices()
     pieces = mesh.split(only_watertight=False)
     if len(pieces) > 1:
         largest = max(len(p.faces) for p in pieces)
         mesh = trimesh.util.concatenate([p for p in pieces if len(p.faces) >= min_share * largest])
-    mesh = close_small_holes(mesh, max_length=hole * voxel)
+    if closed:
+        mesh = split_nonmanifold(mesh)
+    else:
+        mesh = close_small_holes(mesh, max_length=hole * voxel)
     if mesh.is_watertight and mesh.volume < 0:
         mesh.invert()
     return mesh
+
+
+def split_nonmanifold(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """``mesh`` with every vertex where faces meet in more than one fan (or only along an edge
+    shared by more than two faces) split into one vertex per fan: where marching cubes lets two
+    sheets touch in a grid cell, they are parted. Positions are unchanged."""
+    faces = np.asarray(mesh.faces)
+    n_faces = len(faces)
+    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    corner_a = (3 * np.arange(n_faces)[:, None] + np.array([0, 1, 2])).ravel()
+    corner_b = (3 * np.arange(n_faces)[:, None] + np.array([1, 2, 0])).ravel()
+    _, edge, counts = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True,
+                                return_counts=True)
+    edge = edge.ravel()
+    manifold = np.flatnonzero(counts[edge] == 2)
+    order = manifold[np.argsort(edge[manifold], kind="stable")]
+    first, second = order[0::2], order[1::2]  # the two half-edges of each manifold edge
+    # half-edge a→b of one face meets b→a of the other: join the corners at a and at b
+    rows = np.concatenate([corner_a[first], corner_b[first]])
+    cols = np.concatenate([corner_b[second], corner_a[second]])
+    same = directed[first, 0] == directed[second, 0]  # faces wound against each other
+    flipped = np.r_[same, same]
+    cols[flipped] = np.concatenate([corner_a[second], corner_b[second]])[flipped]
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * n_faces,) * 2)
+    _, fan = connected_components(graph, directed=False)
+    old_vertex = faces.ravel()
+    _, first_corner = np.unique(fan, return_index=True)
+    if len(first_corner) == len(mesh.vertices):
+        return mesh
+    return trimesh.Trimesh(np.asarray(mesh.vertices)[old_vertex[first_corner]],
+                           fan.reshape(-1, 3), process=False)
 
 
 def border_loops(faces: np.ndarray) -> list[np.ndarray]:

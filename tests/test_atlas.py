@@ -135,3 +135,22 @@ def test_small_holes_are_capped_and_large_ones_kept():
     open_cap.update_faces(top < 0.5)
     open_cap.remove_unreferenced_vertices()
     assert not close_small_holes(open_cap, max_length=2.0).is_watertight  # 5.4 long
+
+
+def test_a_closed_cloud_whose_join_is_not_watertight_is_warned_about(sphere_atlas, monkeypatch):
+    _, atlas = sphere_atlas
+    assert atlas.closed_ and (np.abs(atlas.votes_) >= 0.5).all()
+    import reconstruct.atlas as module
+
+    def holed(*args, **kwargs):
+        mesh = implicit_mesh(*args, **kwargs)
+        mesh.update_faces(np.arange(len(mesh.faces)) > 0)  # one face lost
+        return mesh
+
+    with monkeypatch.context() as patch:
+        patch.setattr(module, "implicit_mesh", holed)
+        with pytest.warns(ReconstructionWarning, match="looks closed"):
+            atlas._join()
+        assert not atlas.watertight_
+    atlas._join()
+    assert atlas.watertight_

@@ -30,6 +30,8 @@ from .charts import ChartDecomposition
 from .errors import NotFittedError, ReconstructionWarning
 from .faithfulness import UNEXPLAINED_LIMIT
 from .join import chart_samples, implicit_mesh, orient_charts
+from .meshing import default_spacing
+from .sdf_grid import SparseSDF
 from .sheet_graph import SheetGraph
 from .validation import check_points
 
@@ -177,7 +179,8 @@ class AtlasReconstructor(BaseEstimator):
         normals = np.concatenate([s * m.vertex_normals[k]
                                   for m, k, s in zip(meshes, kept, self.signs_, strict=True)])
         voxel = self.voxel * self.decomposition_.spacing_
-        self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim)
+        self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim,
+                                   grid=self.__dict__.setdefault("_sdf", SparseSDF(voxel)))
         self.samples_, self.normals_ = samples, normals
         self.watertight_ = bool(self.mesh_.is_watertight)
         self.winding_consistent_ = bool(self.mesh_.is_winding_consistent)
@@ -186,10 +189,19 @@ class AtlasReconstructor(BaseEstimator):
 
     def remesh(self, **params) -> trimesh.Trimesh:
         """Re-mesh every chart with new ``lam``, ``depth``, ... through its ONNX map (no
-        retraining) and join them again. Returns and stores ``mesh_``."""
+        retraining) and join them again. Returns and stores ``mesh_``.
+
+        Each chart keeps the grid spacing it was fitted with (its ``grid_spacing`` is set to
+        it), and its grid lies on the lattice of that spacing, so a new outline moves only the
+        vertices near it; the join re-evaluates its distance only near the samples that moved
+        (`SparseSDF.update`) and gives back the same mesh when none of its samples did (an
+        outline change that stays in the charts' overlap rings)."""
         if not hasattr(self, "charts_"):
             raise NotFittedError("fit() the atlas first")
         started = time.perf_counter()
+        for chart in self.charts_:
+            if chart.grid_spacing is None and params.get("grid_spacing") is None:
+                chart.grid_spacing = default_spacing(chart.outline_, len(chart.embedding_))
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", ReconstructionWarning)
             for chart in self.charts_:
@@ -201,4 +213,7 @@ class AtlasReconstructor(BaseEstimator):
         self.timings_["remesh charts"] = time.perf_counter() - started
         self._join()
         self.timings_["remesh"] = time.perf_counter() - started
+        log.info("atlas re-meshed: %d of %d join samples changed, %d nodes evaluated (%.0f ms)",
+                 self._sdf.n_changed_, len(self.samples_), self._sdf.n_evaluated_,
+                 1000 * self.timings_["remesh"])
         return self.mesh_

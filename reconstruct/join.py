@@ -21,7 +21,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
-_IMLS_NEIGHBOURS = 8
+from .sdf_grid import SparseSDF
 
 
 def chart_samples(meshes, labels, points, reach: float = np.inf):
@@ -84,7 +84,8 @@ def orient_charts(meshes, charts, points) -> np.ndarray:
 
 
 def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float = 1.5,
-                  min_share: float = 0.005, data=None, hole: float = 12.0) -> trimesh.Trimesh:
+                  min_share: float = 0.005, data=None, hole: float = 12.0,
+                  grid: SparseSDF | None = None) -> trimesh.Trimesh:
     """One mesh through oriented samples (m, 3) with unit normals (m, 3).
 
     voxel : grid spacing; band : the surface is sought within ``band`` voxels of a sample;
@@ -93,28 +94,20 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     where data exists (a sharp edge no chart reached) are closed;
     min_share : pieces with fewer faces than this share of the largest are dropped;
     hole : border loops shorter than ``hole`` voxels are capped (`close_small_holes`): pinholes
-    where no chart's samples reached, not holes in the data (12 voxels: under 4 across)."""
+    where no chart's samples reached, not holes in the data (12 voxels: under 4 across);
+    grid : a `SparseSDF` kept between calls: the distance is re-evaluated only near the samples
+    that changed since, and the same samples give back the same mesh at once."""
     from skimage.measure import marching_cubes  # scikit-image: only on the joining path
 
     samples = np.asarray(samples, float)
     normals = np.asarray(normals, float)
-    pad = band + 2
-    origin = samples.min(axis=0) - pad * voxel
-    shape = np.ceil((samples.max(axis=0) + pad * voxel - origin) / voxel).astype(int) + 1
-    axes = [origin[i] + voxel * np.arange(shape[i]) for i in range(3)]
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    tree = cKDTree(samples)
-    distance, nearest = tree.query(grid, distance_upper_bound=(band + 1) * voxel)
-    near = np.isfinite(distance)
-    values = np.full(len(grid), voxel * (band + 1))
-    k = min(_IMLS_NEIGHBOURS, len(samples))
-    d, index = tree.query(grid[near], k=k)
-    offsets = np.einsum("gki,gki->gk", grid[near][:, None, :] - samples[index], normals[index])
-    weights = np.exp(-(d / (1.5 * voxel)) ** 2)
-    values[near] = (weights * offsets).sum(axis=1) / np.maximum(weights.sum(axis=1), 1e-300)
-    # far from the samples: the side the nearest sample's plane puts the node on
-    values = values.reshape(shape)
-    mask = (distance <= band * voxel).reshape(shape)
+    sdf = SparseSDF(voxel, band) if grid is None else grid
+    sdf.voxel, sdf.band = voxel, band
+    sdf.follow(samples, normals)
+    key = (trim, min_share, hole)
+    if data is None and sdf.n_changed_ == 0 and getattr(sdf, "mesh_key_", None) == key:
+        return sdf.mesh_.copy(include_cache=True)  # the same samples: the same mesh
+    values, mask, origin, tree = sdf.values_, sdf.mask_, sdf.origin_, sdf.tree_
     vertices, faces, _, _ = marching_cubes(values, level=0.0, spacing=(voxel,) * 3, mask=mask,
                                            gradient_direction="ascent", allow_degenerate=False)
     mesh = trimesh.Trimesh(vertices + origin, faces, process=True)
@@ -131,6 +124,8 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     mesh = close_small_holes(mesh, max_length=hole * voxel)
     if mesh.is_watertight and mesh.volume < 0:
         mesh.invert()
+    if grid is not None and data is None:
+        sdf.mesh_, sdf.mesh_key_ = mesh.copy(include_cache=True), key
     return mesh
 
 

@@ -84,7 +84,8 @@ def mesh_inside(
 
 
 def _grid_nodes(polygon, spacing):
-    lo = polygon.min(axis=0)
+    # on the lattice spacing · ℤ²: a new outline keeps the interior nodes where they were
+    lo = np.floor(polygon.min(axis=0) / spacing) * spacing
     hi = polygon.max(axis=0)
     nx = int(np.ceil((hi[0] - lo[0]) / spacing)) + 1
     ny = int(np.ceil((hi[1] - lo[1]) / spacing)) + 1

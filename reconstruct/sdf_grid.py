@@ -1,0 +1,169 @@
+"""The join's signed distance on a voxel grid, evaluated only near the samples, and re-evaluated
+only near the samples that changed.
+
+`implicit_mesh` (reconstruct.join) needs, on a regular grid, the implicit moving-least-squares
+distance (Kolluri 2005: the Gaussian-weighted mean of the signed distances to the 8 nearest
+samples' tangent planes) at the nodes within ``band + 1`` voxels of a sample, and a mask of the
+nodes within ``band`` voxels. Querying every node of the bounding box is what made joining slow
+(a 150 mm torus at 0.5 spacings: millions of nodes, a few percent of them near the surface).
+`SparseSDF.fit` marks the cells holding a sample on a boolean grid, dilates them by ``band + 1``
+voxels (a separable box filter, cheap on booleans) and queries the KD-tree only there: the same
+values as the dense evaluation at every node that matters (the others keep the far constant).
+
+The grid lies on the global lattice ``voxel · ℤ³`` (its origin is a multiple of ``voxel``), so two
+sets of samples that agree somewhere give the same nodes there. `SparseSDF.update` takes new
+samples, finds the ones that appeared or went (rows not matched within ``tolerance``), and
+re-evaluates only the nodes whose 8 nearest samples or band membership they can change: the
+nodes within the largest 8-neighbour distance (or ``band + 1`` voxels) of a changed sample.
+The result equals a fresh `fit` on the new samples (tested).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import maximum_filter
+from scipy.spatial import cKDTree
+
+#: Samples whose tangent planes enter a node's distance (Kolluri's k).
+IMLS_NEIGHBOURS = 8
+#: Gaussian width of the IMLS weights, in voxels.
+IMLS_WIDTH = 1.5
+
+
+def lattice_box(samples: np.ndarray, voxel: float, pad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Origin (3,) on the lattice ``voxel · ℤ³`` and shape (3,) int of a grid holding
+    ``samples`` (m, 3) with ``pad`` voxels to spare on every side."""
+    low = (np.floor(samples.min(axis=0) / voxel) - np.ceil(pad)) * voxel
+    high = samples.max(axis=0) + pad * voxel
+    return low, np.ceil((high - low) / voxel).astype(np.int64) + 1
+
+
+def imls(nodes, samples, normals, tree: cKDTree, voxel: float):
+    """IMLS signed distance at ``nodes`` (q, 3) from oriented ``samples`` (m, 3) / ``normals``
+    (m, 3) in ``tree``. Returns values (q,) and the distance to the 8th nearest sample (q,)."""
+    k = min(IMLS_NEIGHBOURS, len(samples))
+    d, index = tree.query(nodes, k=k)
+    d, index = d.reshape(len(nodes), k), index.reshape(len(nodes), k)
+    offsets = np.einsum("gki,gki->gk", nodes[:, None, :] - samples[index], normals[index])
+    weights = np.exp(-(d / (IMLS_WIDTH * voxel)) ** 2)
+    values = (weights * offsets).sum(axis=1) / np.maximum(weights.sum(axis=1), 1e-300)
+    return values, d[:, -1]
+
+
+class SparseSDF:
+    """The IMLS distance of oriented samples on the voxel nodes near them.
+
+    Parameters: ``voxel`` grid spacing; ``band`` the surface is sought within ``band`` voxels
+    of a sample; ``pad`` voxels of grid beyond the samples' bounds (``band + 2``: the dense
+    evaluation's); ``tolerance`` how far (input units; default 1e-9 voxels) a sample or normal
+    may move and still count as the same in `update`.
+
+    Fitted attributes: ``origin_`` (3,), ``shape_`` (3,), ``values_`` (shape) float IMLS
+    distance (``voxel · (band + 1)`` far from the samples), ``mask_`` (shape) bool nodes within
+    ``band`` voxels of a sample, ``tree_`` cKDTree of ``samples_`` (m, 3), ``normals_`` (m, 3),
+    ``reach_`` (largest 8-neighbour distance of a node in the band), ``n_evaluated_`` nodes
+    evaluated by the last fit / update.
+    """
+
+    def __init__(self, voxel: float, band: float = 3.0, pad: float | None = None,
+                 tolerance: float | None = None):
+        self.voxel = voxel
+        self.band = band
+        self.pad = pad
+        self.tolerance = tolerance
+
+    @property
+    def _far(self) -> float:
+        return self.voxel * (self.band + 1)
+
+    def fit(self, samples, normals) -> SparseSDF:
+        """samples, normals : (m, 3) float. Returns self."""
+        samples = np.ascontiguousarray(samples, float)
+        normals = np.ascontiguousarray(normals, float)
+        pad = self.band + 2 if self.pad is None else self.pad
+        self.origin_, self.shape_ = lattice_box(samples, self.voxel, pad)
+        self.samples_, self.normals_ = samples, normals
+        self.tree_ = cKDTree(samples)
+        self.values_ = np.full(tuple(self.shape_), self._far)
+        self.mask_ = np.zeros(tuple(self.shape_), bool)
+        self._eighth = np.zeros(tuple(self.shape_), np.float32)
+        nodes = self._candidates(samples, self.band + 1)
+        self._evaluate(nodes)
+        self.n_evaluated_ = len(nodes)
+        self.n_changed_ = len(samples)
+        self.reach_ = float(self._eighth.max())
+        self._fitted_with = (self.voxel, self.band, self.pad, self.tolerance)
+        return self
+
+    def follow(self, samples, normals) -> SparseSDF:
+        """`update` when fitted with the present parameters, else `fit`. Returns self."""
+        if getattr(self, "_fitted_with", None) == (self.voxel, self.band, self.pad,
+                                                    self.tolerance):
+            return self.update(samples, normals)
+        return self.fit(samples, normals)
+
+    def update(self, samples, normals) -> SparseSDF:
+        """Move to new ``samples`` / ``normals`` (m', 3), re-evaluating only near the changed
+        ones; a fresh `fit` when they leave the grid. Returns self."""
+        samples = np.ascontiguousarray(samples, float)
+        normals = np.ascontiguousarray(normals, float)
+        added, removed = self._changes(samples, normals)
+        self.samples_, self.normals_ = samples, normals
+        self.n_changed_ = int(added.sum() + removed.sum())
+        if self.n_changed_ == 0:
+            self.n_evaluated_ = 0
+            return self
+        origin, shape = lattice_box(samples, self.voxel, self.band + 1)
+        if np.any(origin < self.origin_ - 1e-9 * self.voxel) or np.any(
+                origin + self.voxel * (shape - 1) > self.origin_ + self.voxel * (self.shape_ - 1)):
+            return self.fit(samples, normals)  # beyond the grid: evaluate afresh
+        changed = np.concatenate([samples[added], self._old[removed]])
+        self.tree_ = cKDTree(samples)
+        # a node's 8 nearest samples can change only within its old 8-neighbour distance of a
+        # change; after the change it is at most max(reach, band + 1 voxels) from one
+        radius = max(self.reach_, self._far) / self.voxel
+        nodes = self._candidates(changed, radius)
+        self.values_.flat[nodes] = self._far
+        self.mask_.flat[nodes] = False
+        self._eighth.flat[nodes] = 0
+        self._evaluate(nodes)
+        self.n_evaluated_ = len(nodes)
+        self.reach_ = max(self.reach_, float(self._eighth.flat[nodes].max(initial=0)))
+        return self
+
+    # -- internals -------------------------------------------------------------------------
+    def _changes(self, samples, normals):
+        """(m',) bool new samples not among the old, (m,) bool old samples not among the new."""
+        self._old = self.samples_
+        tolerance = 1e-9 * self.voxel if self.tolerance is None else self.tolerance
+        both_new = np.hstack([samples, normals * self.voxel])
+        both_old = np.hstack([self.samples_, self.normals_ * self.voxel])
+        if len(both_new) == 0 or len(both_old) == 0:
+            return np.ones(len(samples), bool), np.ones(len(self.samples_), bool)
+        gap_new = cKDTree(both_old).query(both_new, distance_upper_bound=tolerance * 2)[0]
+        gap_old = cKDTree(both_new).query(both_old, distance_upper_bound=tolerance * 2)[0]
+        return ~(gap_new <= tolerance), ~(gap_old <= tolerance)
+
+    def _candidates(self, centres: np.ndarray, radius: float) -> np.ndarray:
+        """Flat indices of the nodes within ``radius`` voxels (per axis) of ``centres``."""
+        marked = np.zeros(tuple(self.shape_), np.uint8)
+        cells = np.floor((centres - self.origin_) / self.voxel).astype(np.int64)
+        cells = np.clip(cells, 0, self.shape_ - 1)
+        marked[cells[:, 0], cells[:, 1], cells[:, 2]] = 1
+        # a node i is within radius of a point in cell c when c - r <= i <= c + 1 + r
+        reach = int(np.ceil(radius))
+        marked = maximum_filter(marked, size=2 * reach + 2, mode="constant")
+        return np.flatnonzero(marked)
+
+    def _evaluate(self, flat: np.ndarray) -> None:
+        index = np.unravel_index(flat, tuple(self.shape_))
+        nodes = self.origin_ + self.voxel * np.column_stack(index).astype(float)
+        distance = self.tree_.query(nodes, distance_upper_bound=self._far)[0]
+        near = np.isfinite(distance)
+        if not near.any():
+            return
+        values, eighth = imls(nodes[near], self.samples_, self.normals_, self.tree_, self.voxel)
+        where = flat[near]
+        self.values_.flat[where] = values
+        self._eighth.flat[where] = eighth
+        self.mask_.flat[where] = distance[near] <= self.band * self.voxel

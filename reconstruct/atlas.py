@@ -19,16 +19,19 @@ and joins them again.
 from __future__ import annotations
 
 import logging
+import os
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import trimesh
 from sklearn.base import BaseEstimator
 
 from .charts import ChartDecomposition
-from .errors import NotFittedError, ReconstructionWarning
+from .errors import InvalidInputError, NotFittedError, ReconstructionWarning
 from .faithfulness import UNEXPLAINED_LIMIT
+from .io import one_line, read_state, write_state
 from .join import chart_samples, implicit_mesh, orient_charts
 from .meshing import default_spacing
 from .sdf_grid import SparseSDF
@@ -36,6 +39,10 @@ from .sheet_graph import SheetGraph
 from .validation import check_points
 
 log = logging.getLogger(__name__)
+
+ATLAS_FORMAT = "scanstation-atlas/1"
+#: Parameters of the fit only (a loaded atlas re-meshes, it does not fit): not saved.
+_FIT_ONLY_PARAMS = ("graph",)
 
 #: Largest share of a chart mesh's adjacent face pairs folded back onto each other (> 120°).
 FOLD_LIMIT = 0.02
@@ -199,9 +206,7 @@ class AtlasReconstructor(BaseEstimator):
         if not hasattr(self, "charts_"):
             raise NotFittedError("fit() the atlas first")
         started = time.perf_counter()
-        for chart in self.charts_:
-            if chart.grid_spacing is None and params.get("grid_spacing") is None:
-                chart.grid_spacing = default_spacing(chart.outline_, len(chart.embedding_))
+        self._pin_chart_grids()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", ReconstructionWarning)
             for chart in self.charts_:
@@ -217,3 +222,86 @@ class AtlasReconstructor(BaseEstimator):
                  self._sdf.n_changed_, len(self.samples_), self._sdf.n_evaluated_,
                  1000 * self.timings_["remesh"])
         return self.mesh_
+
+    def _pin_chart_grids(self) -> None:
+        """Keep each chart's fitted grid spacing (its ``grid_spacing``) from now on."""
+        for chart in self.charts_:
+            if chart.grid_spacing is None:
+                chart.grid_spacing = default_spacing(chart.outline_, len(chart.embedding_))
+
+    # -- persistence ---------------------------------------------------------------------------
+    def state(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """The fitted state as (meta, arrays): every chart's `SurfaceReconstructor.state`
+        (embedded points, ONNX map, parameters; arrays ``chart<i>_*``), the cloud ``points``
+        (n, 3), its partition ``labels`` (n,), the ``chart_points`` of each chart (flat, cut at
+        ``chart_offsets``) and the ``signs`` (c,) — what re-joining needs, and no network."""
+        if not hasattr(self, "charts_"):
+            raise NotFittedError("nothing to save: fit() the atlas first")
+        self._pin_chart_grids()
+        charts, arrays = [], {}
+        for index, chart in enumerate(self.charts_):
+            meta, chart_arrays = chart.state(prefix=f"chart{index}_")
+            charts.append(meta)
+            arrays.update(chart_arrays)
+        meta = {
+            "format": ATLAS_FORMAT,
+            "params": {k: v for k, v in self.get_params(deep=False).items()
+                       if k not in _FIT_ONLY_PARAMS},
+            "charts": charts,
+            "chart_ids": [int(i) for i in self._chart_ids],
+            "spacing": float(self.decomposition_.spacing_),
+            "faults": list(self.faults_),
+        }
+        sizes = [len(members) for members in self.chart_points_]
+        arrays.update(points=self.points_, labels=self.decomposition_.labels_,
+                      chart_points=np.concatenate(self.chart_points_),
+                      chart_offsets=np.cumsum([0, *sizes]), signs=np.asarray(self.signs_))
+        return meta, arrays
+
+    @classmethod
+    def from_state(cls, meta: dict, arrays: dict) -> AtlasReconstructor:
+        """Rebuild a fitted atlas from `state`; it can `remesh()` at once (no torch needed).
+        Its ``decomposition_`` holds ``labels_`` and ``spacing_`` only; ``mesh_`` comes with
+        the first `remesh`."""
+        from .pipeline import SurfaceReconstructor
+
+        self = cls(**meta["params"])
+        self.charts_ = [SurfaceReconstructor.from_state(chart, arrays, prefix=f"chart{i}_")
+                        for i, chart in enumerate(meta["charts"])]
+        self.points_ = np.asarray(arrays["points"], float)
+        labels = np.asarray(arrays["labels"], np.int64)
+        offsets = np.asarray(arrays["chart_offsets"], np.int64)
+        flat = np.asarray(arrays["chart_points"], np.int64)
+        self.chart_points_ = [flat[a:b] for a, b in zip(offsets[:-1], offsets[1:], strict=True)]
+        self.signs_ = np.asarray(arrays["signs"], float)
+        self._chart_ids = [int(i) for i in meta["chart_ids"]]
+        n_charts = len(self.charts_)
+        if not (len(self.signs_) == len(self.chart_points_) == len(self._chart_ids) == n_charts
+                and labels.shape == (len(self.points_),) and self.points_.ndim == 2
+                and (len(flat) == 0 or 0 <= flat.min() and flat.max() < len(self.points_))):
+            raise ValueError("its charts, signs and points do not agree")
+        self.decomposition_ = ChartDecomposition(chart_size=self.chart_size,
+                                                 overlap=self.overlap)
+        self.decomposition_.labels_ = labels
+        self.decomposition_.spacing_ = float(meta["spacing"])
+        self.faults_ = [str(fault) for fault in meta["faults"]]
+        self.timings_ = {}
+        return self
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the fitted state (`state`) atomically to an .npz file."""
+        return write_state(path, *self.state())
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> AtlasReconstructor:
+        """Read an atlas written by `save` (or by `SurfaceReconstructor.save` of an atlas).
+        A damaged or foreign file raises `InvalidInputError` in one line."""
+        meta, arrays = read_state(path)
+        if meta.get("format") != ATLAS_FORMAT:
+            raise InvalidInputError(
+                f"{path}: not an atlas state (format {meta.get('format')!r})")
+        try:
+            return cls.from_state(meta, arrays)
+        except Exception as exc:  # a missing array, a bad header field, a broken ONNX model
+            raise InvalidInputError(
+                f"{path}: damaged atlas state ({one_line(exc)})") from exc

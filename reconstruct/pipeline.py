@@ -10,8 +10,6 @@ surface again after more points arrived: the new embedding is aligned to the ear
 from __future__ import annotations
 
 import copy
-import io
-import json
 import logging
 import os
 import time
@@ -34,7 +32,7 @@ from .faithfulness import (
     neighbour_preservation,
     unexplained_fraction,
 )
-from .io import write_bytes_atomic
+from .io import one_line, read_state, write_state
 from .meshing import default_spacing, mesh_inside, sample_ring
 from .mlp import AdaptiveMLP
 from .outline import border_inset, border_spacing, extend_outline
@@ -392,54 +390,64 @@ class SurfaceReconstructor(BaseEstimator):
 
     # -- persistence ---------------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> Path:
-        """Write the fitted state (embedded points, ONNX model, parameters) atomically."""
+        """Write the fitted state (embedded points, ONNX model, parameters) atomically; of an
+        atlas, every chart's state and what re-joining needs (`AtlasReconstructor.state`)."""
         if hasattr(self, "atlas_"):
-            raise InvalidInputError(
-                "saving an atlas of charts is not supported yet: its mesh is written, its state "
-                "is not (re-mesh it in the same process with remesh())")
+            meta, arrays = self.atlas_.state()
+            meta["reconstructor"] = {"params": self._saved_params(),
+                                     "atlas_reason": self.atlas_reason_}
+            return write_state(path, meta, arrays)
         if not hasattr(self, "surface_map_"):
             raise NotFittedError("nothing to save: fit() the reconstructor first")
-        path = Path(path)
+        return write_state(path, *self.state())
+
+    def _saved_params(self) -> dict:
+        return {k: v for k, v in self.get_params(deep=False).items() if k not in _TRAINING_PARAMS}
+
+    def state(self, prefix: str = "") -> tuple[dict, dict[str, np.ndarray]]:
+        """The one-chart fitted state: (meta, arrays named ``prefix`` + embedding / points /
+        onnx), as `save` writes it."""
         meta = {
             "format": STATE_FORMAT,
-            "params": {k: v for k, v in self.get_params(deep=False).items()
-                       if k not in _TRAINING_PARAMS},
+            "params": self._saved_params(),
             "embedding_method": self.embedding_method_,
             "n_neighbors": int(self.n_neighbors_),
             "hidden_layers": list(self.hidden_layers_),
         }
-        buffer = io.BytesIO()
-        np.savez_compressed(
-            buffer,
-            meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
-            embedding=self.embedding_,
-            points=self.points_,
-            onnx=np.frombuffer(self.surface_map_.to_bytes(), dtype=np.uint8),
-        )
-        return write_bytes_atomic(path, buffer.getvalue())
+        arrays = {f"{prefix}embedding": self.embedding_, f"{prefix}points": self.points_,
+                  f"{prefix}onnx": np.frombuffer(self.surface_map_.to_bytes(), dtype=np.uint8)}
+        return meta, arrays
+
+    @classmethod
+    def from_state(cls, meta: dict, arrays: dict, prefix: str = "") -> SurfaceReconstructor:
+        """Rebuild a one-chart reconstruction from `state`; it can `remesh()` at once."""
+        self = cls(**meta["params"])
+        self.embedding_ = np.asarray(arrays[f"{prefix}embedding"], float)
+        self.points_ = np.asarray(arrays[f"{prefix}points"], float)
+        self.embedding_method_ = meta["embedding_method"]
+        self.n_neighbors_ = int(meta["n_neighbors"])
+        self.hidden_layers_ = tuple(meta["hidden_layers"])
+        self.surface_map_ = OnnxSurfaceMap.from_bytes(bytes(arrays[f"{prefix}onnx"]))
+        self._boundary_cache = {}
+        return self
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> SurfaceReconstructor:
-        """Read a state written by `save`; the result can `remesh()` at once."""
-        path = Path(path)
-        if not path.is_file():
-            raise InvalidInputError(f"{path}: no such reconstruction state file")
+        """Read a state written by `save` (one chart or an atlas); the result can `remesh()` at
+        once. A damaged or foreign file raises `InvalidInputError` in one line."""
+        from .atlas import ATLAS_FORMAT, AtlasReconstructor
+
+        meta, arrays = read_state(path)
+        kind = meta.get("format")
+        if kind not in (STATE_FORMAT, ATLAS_FORMAT):
+            raise InvalidInputError(f"{path}: unsupported state format {kind!r}")
         try:
-            with np.load(path, allow_pickle=False) as data:
-                meta = json.loads(bytes(data["meta"]).decode())
-                embedding, points, onnx = data["embedding"], data["points"], bytes(data["onnx"])
-        except Exception as exc:
+            if kind == STATE_FORMAT:
+                return cls.from_state(meta, arrays)
+            self = cls(**meta["reconstructor"]["params"])
+            self.atlas_ = AtlasReconstructor.from_state(meta, arrays)
+            self.atlas_reason_ = str(meta["reconstructor"]["atlas_reason"])
+            return self
+        except Exception as exc:  # a missing array, a bad header field, a broken ONNX model
             raise InvalidInputError(
-                f"{path}: not a ScanStation reconstruction state ({exc})"
-            ) from exc
-        if meta.get("format") != STATE_FORMAT:
-            raise InvalidInputError(f"{path}: unsupported state format {meta.get('format')!r}")
-        self = cls(**meta["params"])
-        self.embedding_ = embedding
-        self.points_ = points
-        self.embedding_method_ = meta["embedding_method"]
-        self.n_neighbors_ = meta["n_neighbors"]
-        self.hidden_layers_ = tuple(meta["hidden_layers"])
-        self.surface_map_ = OnnxSurfaceMap.from_bytes(onnx)
-        self._boundary_cache = {}
-        return self
+                f"{path}: damaged reconstruction state ({one_line(exc)})") from exc

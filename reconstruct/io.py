@@ -168,4 +168,6 @@ def read_state(path: str | os.PathLike) -> tuple[dict, dict[str, np.ndarray]]:
 def one_line(exc: BaseException) -> str:
     """``exc`` as one line: its type when it says nothing, newlines folded."""
     text = " ".join(str(exc).split()) or type(exc).__name__
+    if isinstance(exc, KeyError):
+        text = f"missing {text}"
     return text if len(text) <= 200 else text[:197] + "..."

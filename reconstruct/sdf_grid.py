@@ -133,16 +133,22 @@ class SparseSDF:
 
     # -- internals -------------------------------------------------------------------------
     def _changes(self, samples, normals):
-        """(m',) bool new samples not among the old, (m,) bool old samples not among the new."""
+        """(m',) bool new samples not among the old, (m,) bool old samples not among the new
+        (a sample is the same when it and its normal moved by at most ``tolerance``, and no
+        other new sample claims the same old one)."""
         self._old = self.samples_
         tolerance = 1e-9 * self.voxel if self.tolerance is None else self.tolerance
-        both_new = np.hstack([samples, normals * self.voxel])
-        both_old = np.hstack([self.samples_, self.normals_ * self.voxel])
-        if len(both_new) == 0 or len(both_old) == 0:
+        if len(samples) == 0 or len(self.samples_) == 0:
             return np.ones(len(samples), bool), np.ones(len(self.samples_), bool)
-        gap_new = cKDTree(both_old).query(both_new, distance_upper_bound=tolerance * 2)[0]
-        gap_old = cKDTree(both_new).query(both_old, distance_upper_bound=tolerance * 2)[0]
-        return ~(gap_new <= tolerance), ~(gap_old <= tolerance)
+        gap, match = cKDTree(self.samples_).query(samples, distance_upper_bound=2 * tolerance)
+        same = gap <= tolerance
+        same[same] = np.all(np.abs(normals[same] - self.normals_[match[same]])
+                            <= tolerance / self.voxel, axis=1)
+        claims = np.bincount(match[same], minlength=len(self.samples_))
+        same[same] = claims[match[same]] == 1
+        kept = np.zeros(len(self.samples_), bool)
+        kept[match[same]] = True
+        return ~same, ~kept
 
     def _candidates(self, centres: np.ndarray, radius: float) -> np.ndarray:
         """Flat indices of the nodes within ``radius`` voxels (per axis) of ``centres``."""

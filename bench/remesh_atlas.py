@@ -6,9 +6,10 @@ on the same cloud (issue 13: a 50k-vertex atlas mesh re-meshes in ≤ 300 ms).
 Fits `AtlasReconstructor` to a closed awkward object (σ 0.5 % of the diagonal), states the mesh's
 vertex count, then re-meshes it through the charts' ONNX maps with several λ and a depth change
 and prints each re-mesh's time (wall, and CPU time of this process: the machine may be
-shared), split into the charts' re-meshing and the join (wall), with how many join samples moved and how many grid nodes were re-evaluated; then the median re-mesh time
-against the fit and against Poisson; then the same after a save → load in this process (the
-first re-mesh of a loaded atlas evaluates the join's grid afresh).
+shared), split into the charts' re-meshing and the join (wall), with how many join samples
+moved and how many grid nodes were re-evaluated; then the median re-mesh time against the fit
+and against Poisson; then the same after a save → load in this process (the first re-mesh of a
+loaded atlas evaluates the join's grid afresh).
 """
 
 from __future__ import annotations

@@ -232,9 +232,11 @@ class AtlasReconstructor(BaseEstimator):
     # -- persistence ---------------------------------------------------------------------------
     def state(self) -> tuple[dict, dict[str, np.ndarray]]:
         """The fitted state as (meta, arrays): every chart's `SurfaceReconstructor.state`
-        (embedded points, ONNX map, parameters; arrays ``chart<i>_*``), the cloud ``points``
-        (n, 3), its partition ``labels`` (n,), the ``chart_points`` of each chart (flat, cut at
-        ``chart_offsets``) and the ``signs`` (c,) — what re-joining needs, and no network."""
+        (embedded points, ONNX map, parameters, boundary samples; arrays ``chart<i>_*``), the
+        cloud ``points`` (n, 3), its partition ``labels`` (n,), the ``chart_points`` of each
+        chart (flat, cut at ``chart_offsets``) and the ``signs`` (c,) — what re-joining needs,
+        and no network — and the join's grid and last mesh (`SparseSDF.state`, ``join_*``), so
+        a loaded atlas re-meshes incrementally too."""
         if not hasattr(self, "charts_"):
             raise NotFittedError("nothing to save: fit() the atlas first")
         self._pin_chart_grids()
@@ -252,6 +254,9 @@ class AtlasReconstructor(BaseEstimator):
             "spacing": float(self.decomposition_.spacing_),
             "faults": list(self.faults_),
         }
+        if hasattr(self, "_sdf") and hasattr(self._sdf, "values_"):
+            meta["join"], join_arrays = self._sdf.state(prefix="join_")
+            arrays.update(join_arrays)
         sizes = [len(members) for members in self.chart_points_]
         arrays.update(points=self.points_, labels=self.decomposition_.labels_,
                       chart_points=np.concatenate(self.chart_points_),
@@ -286,6 +291,8 @@ class AtlasReconstructor(BaseEstimator):
         self.decomposition_.spacing_ = float(meta["spacing"])
         self.faults_ = [str(fault) for fault in meta["faults"]]
         self.timings_ = {}
+        if "join" in meta:  # the join's grid and last mesh: the first re-mesh is incremental
+            self._sdf = SparseSDF.from_state(meta["join"], arrays, prefix="join_")
         return self
 
     def save(self, path: str | os.PathLike) -> Path:

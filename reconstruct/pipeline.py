@@ -416,6 +416,9 @@ class SurfaceReconstructor(BaseEstimator):
         }
         arrays = {f"{prefix}embedding": self.embedding_, f"{prefix}points": self.points_,
                   f"{prefix}onnx": np.frombuffer(self.surface_map_.to_bytes(), dtype=np.uint8)}
+        for key, points in getattr(self, "_boundary_cache", {}).items():
+            if key != "tree":  # the boundary samples of each (boundary, depth, n_corners) used
+                arrays[f"{prefix}boundary_{key[0]}_{key[1]}_{key[2]}"] = points
         return meta, arrays
 
     @classmethod
@@ -429,6 +432,11 @@ class SurfaceReconstructor(BaseEstimator):
         self.hidden_layers_ = tuple(meta["hidden_layers"])
         self.surface_map_ = OnnxSurfaceMap.from_bytes(bytes(arrays[f"{prefix}onnx"]))
         self._boundary_cache = {}
+        for name in arrays:
+            if name.startswith(f"{prefix}boundary_"):
+                boundary, depth, n_corners = name[len(f"{prefix}boundary_"):].split("_")
+                self._boundary_cache[(boundary, int(depth), int(n_corners))] = np.asarray(
+                    arrays[name], float)
         return self
 
     @classmethod

@@ -173,3 +173,47 @@ class SparseSDF:
         self.values_.flat[where] = values
         self._eighth.flat[where] = eighth
         self.mask_.flat[where] = distance[near] <= self.band * self.voxel
+
+    # -- persistence ---------------------------------------------------------------------------
+    def state(self, prefix: str = "") -> tuple[dict, dict[str, np.ndarray]]:
+        """The fitted grid as (meta, arrays named ``prefix`` + ...): the evaluated nodes only,
+        the samples, and the last mesh when one is kept (``mesh_``)."""
+        nodes = np.flatnonzero((self._eighth > 0) | self.mask_ | (self.values_ != self._far))
+        meta = {"params": {"voxel": self.voxel, "band": self.band, "pad": self.pad,
+                           "tolerance": self.tolerance},
+                "reach": self.reach_, "mesh_key": list(getattr(self, "mesh_key_", []))}
+        arrays = {"origin": self.origin_, "shape": self.shape_, "nodes": nodes,
+                  "values": self.values_.flat[nodes], "eighth": self._eighth.flat[nodes],
+                  "mask": self.mask_.flat[nodes], "samples": self.samples_,
+                  "normals": self.normals_}
+        if hasattr(self, "mesh_"):
+            arrays.update(mesh_vertices=self.mesh_.vertices, mesh_faces=self.mesh_.faces)
+        return meta, {prefix + name: np.asarray(value) for name, value in arrays.items()}
+
+    @classmethod
+    def from_state(cls, meta: dict, arrays: dict, prefix: str = "") -> SparseSDF:
+        """Rebuild a grid from `state`: `update` continues from it."""
+        import trimesh
+
+        self = cls(**meta["params"])
+        self.origin_ = np.asarray(arrays[prefix + "origin"], float)
+        self.shape_ = np.asarray(arrays[prefix + "shape"], np.int64)
+        shape = tuple(int(n) for n in self.shape_)
+        nodes = np.asarray(arrays[prefix + "nodes"], np.int64)
+        self.values_ = np.full(shape, self._far)
+        self.values_.flat[nodes] = arrays[prefix + "values"]
+        self._eighth = np.zeros(shape, np.float32)
+        self._eighth.flat[nodes] = arrays[prefix + "eighth"]
+        self.mask_ = np.zeros(shape, bool)
+        self.mask_.flat[nodes] = arrays[prefix + "mask"]
+        self.samples_ = np.ascontiguousarray(arrays[prefix + "samples"], float)
+        self.normals_ = np.ascontiguousarray(arrays[prefix + "normals"], float)
+        self.tree_ = cKDTree(self.samples_)
+        self.reach_ = float(meta["reach"])
+        self.n_evaluated_ = self.n_changed_ = 0
+        self._fitted_with = (self.voxel, self.band, self.pad, self.tolerance)
+        if prefix + "mesh_vertices" in arrays:
+            self.mesh_ = trimesh.Trimesh(arrays[prefix + "mesh_vertices"],
+                                         arrays[prefix + "mesh_faces"], process=False)
+            self.mesh_key_ = tuple(meta["mesh_key"])
+        return self

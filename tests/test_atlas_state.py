@@ -42,7 +42,12 @@ def test_a_loaded_atlas_remeshes_to_the_same_mesh(saved):
     assert len(loaded.atlas_.charts_) == len(model.atlas_.charts_) >= 2
     assert loaded.lam == 2.0 and loaded.atlas_reason_ == model.atlas_reason_
     same_mesh(loaded.remesh(), model.mesh_)
+    assert loaded.atlas_._sdf.n_changed_ == 0  # the saved join grid and mesh were used
     assert loaded.mesh_.is_watertight and loaded.mesh_.euler_number == 2
+    fresh = SurfaceReconstructor.load(path)
+    del fresh.atlas_._sdf  # the join evaluated afresh from the charts' maps gives it too
+    same_mesh(fresh.remesh(), model.mesh_)
+    assert fresh.atlas_._sdf.n_changed_ == len(fresh.atlas_.samples_)
     same_mesh(loaded.remesh(lam=3.0, depth=3), model.remesh(lam=3.0, depth=3))
     atlas = AtlasReconstructor.load(path)  # the atlas alone reads the same file
     np.testing.assert_array_equal(atlas.signs_, model.atlas_.signs_)

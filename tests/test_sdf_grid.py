@@ -81,3 +81,15 @@ def test_the_same_samples_give_back_the_same_mesh_at_once():
     assert len(updated.vertices) == len(fresh.vertices)
     np.testing.assert_allclose(np.sort(updated.vertices, axis=0), np.sort(fresh.vertices, axis=0),
                                atol=1e-9)
+
+
+def test_a_saved_grid_continues_where_it_stopped():
+    samples, normals = sphere_samples()
+    sdf = SparseSDF(voxel=0.1, band=2.0).fit(samples, normals)
+    loaded = SparseSDF.from_state(*sdf.state(prefix="join_"), prefix="join_")
+    assert np.array_equal(loaded.values_, sdf.values_) and np.array_equal(loaded.mask_, sdf.mask_)
+    bumped = samples * np.where(samples[:, 2:] > 0.9, 1.05, 1.0)
+    loaded.update(bumped, normals)
+    sdf.update(bumped, normals)
+    assert loaded.n_changed_ == sdf.n_changed_ > 0
+    np.testing.assert_array_equal(loaded.values_, sdf.values_)

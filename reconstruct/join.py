@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from .sdf_grid import SparseSDF
@@ -117,7 +117,7 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     far = near_tree.query(mesh.triangles_center)[0] > trim * voxel
     mesh.update_faces(~far)
     mesh.remove_unreferenced_vertices()
-    pieces = mesh.split(only_watertight=False)
+    pieces = mesh.split(only_watertight=False) if n_pieces(mesh.faces) > 1 else [mesh]
     if len(pieces) > 1:
         largest = max(len(p.faces) for p in pieces)
         mesh = trimesh.util.concatenate([p for p in pieces if len(p.faces) >= min_share * largest])
@@ -129,12 +129,29 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     return mesh
 
 
+def n_pieces(faces: np.ndarray) -> int:
+    """Number of pieces of ``faces`` (f, 3) joined across edges of exactly two faces (as
+    trimesh's ``split`` counts them), found from one integer key per edge (fast)."""
+    if len(faces) == 0:
+        return 0
+    ordered = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1).astype(np.int64)
+    key = ordered[:, 0] * (int(ordered.max()) + 1) + ordered[:, 1]
+    order = np.argsort(key, kind="stable")
+    run_start = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1]])
+    run_length = np.diff(np.r_[run_start, len(key)])
+    pairs = run_start[run_length == 2]
+    first, second = order[pairs] // 3, order[pairs + 1] // 3
+    adjacency = coo_matrix((np.ones(len(first)), (first, second)), shape=(len(faces),) * 2)
+    return int(connected_components(adjacency, directed=False)[0])
+
+
 def border_loops(faces: np.ndarray) -> list[np.ndarray]:
     """Closed loops (vertex indices, in the faces' direction) of the edges of ``faces`` (f, 3)
     that belong to one face only. A vertex where two loops touch is walked through once each."""
     directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    ordered = np.sort(directed, axis=1)
-    _, inverse, counts = np.unique(ordered, axis=0, return_inverse=True, return_counts=True)
+    ordered = np.sort(directed, axis=1).astype(np.int64)
+    key = ordered[:, 0] * (int(ordered.max(initial=0)) + 1) + ordered[:, 1]  # one int per edge
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     border = directed[counts[inverse.ravel()] == 1]
     following: dict[int, list[int]] = {}
     for a, b in border.tolist():

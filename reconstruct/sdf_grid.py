@@ -14,7 +14,7 @@ The grid lies on the global lattice ``voxel · ℤ³`` (its origin is a multiple
 sets of samples that agree somewhere give the same nodes there. `SparseSDF.update` takes new
 samples, finds the ones that appeared or went (rows not matched within ``tolerance``), and
 re-evaluates only the nodes whose 8 nearest samples or band membership they can change: the
-nodes within the largest 8-neighbour distance (or ``band + 1`` voxels) of a changed sample.
+nodes nearer a changed sample than their 8th nearest sample was (or ``band + 1`` voxels).
 The result equals a fresh `fit` on the new samples (tested).
 """
 
@@ -86,7 +86,7 @@ class SparseSDF:
         self.tree_ = cKDTree(samples)
         self.values_ = np.full(tuple(self.shape_), self._far)
         self.mask_ = np.zeros(tuple(self.shape_), bool)
-        self._eighth = np.zeros(tuple(self.shape_), np.float32)
+        self._eighth = np.zeros(tuple(self.shape_), float)
         nodes = self._candidates(samples, self.band + 1)
         self._evaluate(nodes)
         self.n_evaluated_ = len(nodes)
@@ -121,8 +121,13 @@ class SparseSDF:
         self.tree_ = cKDTree(samples)
         # a node's 8 nearest samples can change only within its old 8-neighbour distance of a
         # change; after the change it is at most max(reach, band + 1 voxels) from one
-        radius = max(self.reach_, self._far) / self.voxel
-        nodes = self._candidates(changed, radius)
+        radius = max(self.reach_, self._far)
+        nodes = self._candidates(changed, radius / self.voxel)
+        # of those, the nodes a change is nearer than their old 8th neighbour (or the band)
+        xyz = self.origin_ + self.voxel * np.column_stack(
+            np.unravel_index(nodes, tuple(self.shape_))).astype(float)
+        gap = cKDTree(changed).query(xyz, distance_upper_bound=radius * (1 + 1e-9))[0]
+        nodes = nodes[gap <= np.maximum(self._eighth.flat[nodes], self._far)]
         self.values_.flat[nodes] = self._far
         self.mask_.flat[nodes] = False
         self._eighth.flat[nodes] = 0
@@ -202,7 +207,7 @@ class SparseSDF:
         nodes = np.asarray(arrays[prefix + "nodes"], np.int64)
         self.values_ = np.full(shape, self._far)
         self.values_.flat[nodes] = arrays[prefix + "values"]
-        self._eighth = np.zeros(shape, np.float32)
+        self._eighth = np.zeros(shape, float)
         self._eighth.flat[nodes] = arrays[prefix + "eighth"]
         self.mask_ = np.zeros(shape, bool)
         self.mask_.flat[nodes] = arrays[prefix + "mask"]

@@ -95,14 +95,17 @@ def main() -> None:
           f"(target ≤ 300 ms; load average {os.getloadavg()[0]:.1f}) against fit "
           f"{fit_seconds:.1f} s{peer}")
     with tempfile.TemporaryDirectory() as folder:
+        started = time.perf_counter()
         path = atlas.save(Path(folder) / "atlas.npz")
+        save_seconds = time.perf_counter() - started
         size = path.stat().st_size
         started = time.perf_counter()
         loaded = AtlasReconstructor.load(path)
         load_seconds = time.perf_counter() - started
-    print(f"\nsaved {size / 1e6:.1f} MB; loaded in {1000 * load_seconds:.0f} ms; re-meshes of the "
-          "loaded atlas:")
-    again = [timed_remesh(loaded, change) for change in [{}, {"lam": 2.0}, {"lam": 0.7}]]
+    print(f"\nsaved {size / 1e6:.1f} MB in {save_seconds:.1f} s; loaded in "
+          f"{1000 * load_seconds:.0f} ms; re-meshes of the loaded atlas:")
+    again = [timed_remesh(loaded, change)
+             for change in [{}, {"lam": 2.0}, {"depth": 1}, {"lam": 0.7, "depth": 2}]]
     print_rows(again)
     same = np.array_equal(loaded.remesh(**CHANGES[-1]).vertices, atlas.mesh_.vertices)
     print(f"loaded atlas gives the same mesh as before saving: {same}")

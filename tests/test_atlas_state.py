@@ -41,6 +41,8 @@ def test_a_loaded_atlas_remeshes_to_the_same_mesh(saved):
     loaded = SurfaceReconstructor.load(path)
     assert len(loaded.atlas_.charts_) == len(model.atlas_.charts_) >= 2
     assert loaded.lam == 2.0 and loaded.atlas_reason_ == model.atlas_reason_
+    assert all(("multidepth", depth, 8) in chart._boundary_cache  # saved: no sampling on load
+               for chart in loaded.atlas_.charts_ for depth in (1, 2, 3))
     same_mesh(loaded.remesh(), model.mesh_)
     assert loaded.atlas_._sdf.n_changed_ == 0  # the saved join grid and mesh were used
     assert loaded.mesh_.is_watertight and loaded.mesh_.euler_number == 2

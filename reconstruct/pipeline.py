@@ -2,8 +2,9 @@
 
 A fitted reconstruction keeps the embedded points and the ONNX surface map, so `remesh` with a
 new λ, boundary depth or grid spacing runs in milliseconds without retraining, and `save` /
-`load` carry that state to another process. ``fit(points, warm_start=earlier)`` fits the same
-surface again after more points arrived: the new embedding is aligned to the earlier one
+`load` carry that state to another process (of an atlas: every chart's,
+`AtlasReconstructor.state`). ``fit(points, warm_start=earlier)`` fits the same surface again
+after more points arrived: the new embedding is aligned to the earlier one
 (`reconstruct.alignment`) and the earlier network fine-tuned, with no architecture search.
 """
 

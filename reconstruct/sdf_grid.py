@@ -104,7 +104,7 @@ class SparseSDF:
 
     def update(self, samples, normals) -> SparseSDF:
         """Move to new ``samples`` / ``normals`` (m', 3), re-evaluating only near the changed
-        ones; a fresh `fit` when they leave the grid. Returns self."""
+        ones; a fresh `fit` when they leave the grid or most of them changed. Returns self."""
         samples = np.ascontiguousarray(samples, float)
         normals = np.ascontiguousarray(normals, float)
         added, removed = self._changes(samples, normals)
@@ -114,9 +114,13 @@ class SparseSDF:
             self.n_evaluated_ = 0
             return self
         origin, shape = lattice_box(samples, self.voxel, self.band + 1)
-        if np.any(origin < self.origin_ - 1e-9 * self.voxel) or np.any(
+        if 2 * self.n_changed_ > len(samples) + len(self._old) or np.any(
+                origin < self.origin_ - 1e-9 * self.voxel) or np.any(
                 origin + self.voxel * (shape - 1) > self.origin_ + self.voxel * (self.shape_ - 1)):
-            return self.fit(samples, normals)  # beyond the grid: evaluate afresh
+            changed = self.n_changed_  # most samples moved, or beyond the grid: afresh
+            self.fit(samples, normals)
+            self.n_changed_ = changed
+            return self
         changed = np.concatenate([samples[added], self._old[removed]])
         self.tree_ = cKDTree(samples)
         # a node's 8 nearest samples can change only within its old 8-neighbour distance of a

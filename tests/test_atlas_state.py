@@ -55,6 +55,8 @@ def test_a_loaded_atlas_remeshes_to_the_same_mesh(saved):
     np.testing.assert_array_equal(atlas.signs_, model.atlas_.signs_)
     for before, after in zip(model.atlas_.chart_points_, atlas.chart_points_, strict=True):
         np.testing.assert_array_equal(before, after)
+    alone = AtlasReconstructor.load(model.atlas_.save(path.with_name("alone.npz")))
+    same_mesh(alone.remesh(), model.mesh_)  # and writes its own
     model.remesh(lam=2.0)  # as the other tests expect it
 
 

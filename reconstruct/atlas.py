@@ -13,7 +13,10 @@ The accepted charts' meshes, trimmed to a partition of the cloud, oriented alike
 where the data has a border or a hole wider than a few spacings.
 
 `remesh(lam=..., depth=...)` re-meshes every chart through its stored ONNX map (no retraining)
-and joins them again.
+and joins them again, re-evaluating the join's distance only near the samples that moved
+(`reconstruct.sdf_grid`). `save` / `load` (and `SurfaceReconstructor.save` / `load` of an atlas)
+carry the charts' maps, the partition, the signs and the join's grid to another process, where
+`remesh` runs without torch.
 """
 
 from __future__ import annotations

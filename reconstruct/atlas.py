@@ -144,6 +144,7 @@ class AtlasReconstructor(BaseEstimator):
         self.chart_points_ = [fitted[i][1] for i in order]
         self._chart_ids = order
         self.timings_["fits"] = time.perf_counter() - started - self.timings_["charts"]
+        self._pin_chart_grids()  # the charts' grids on their lattices: re-meshing is incremental
         self.signs_ = orient_charts([c.mesh_ for c in self.charts_], self.chart_points_, points)
         self._join()
         self.timings_["total"] = time.perf_counter() - started
@@ -204,8 +205,8 @@ class AtlasReconstructor(BaseEstimator):
         """Re-mesh every chart with new ``lam``, ``depth``, ... through its ONNX map (no
         retraining) and join them again. Returns and stores ``mesh_``.
 
-        Each chart keeps the grid spacing it was fitted with (its ``grid_spacing`` is set to
-        it), and its grid lies on the lattice of that spacing, so a new outline moves only the
+        Each chart keeps the grid spacing it was fitted with (`fit` sets its ``grid_spacing``),
+        and its grid lies on the lattice of that spacing, so a new outline moves only the
         vertices near it; the join re-evaluates its distance only near the samples that moved
         (`SparseSDF.update`) and gives back the same mesh when none of its samples did (an
         outline change that stays in the charts' overlap rings)."""
@@ -230,10 +231,14 @@ class AtlasReconstructor(BaseEstimator):
         return self.mesh_
 
     def _pin_chart_grids(self) -> None:
-        """Keep each chart's fitted grid spacing (its ``grid_spacing``) from now on."""
-        for chart in self.charts_:
-            if chart.grid_spacing is None:
-                chart.grid_spacing = default_spacing(chart.outline_, len(chart.embedding_))
+        """Keep each chart's fitted grid spacing (its ``grid_spacing``) from now on, and mesh it
+        again on the lattice of that spacing, where a new outline leaves the interior be."""
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ReconstructionWarning)  # said by the fit already
+            for chart in self.charts_:
+                if chart.grid_spacing is None:
+                    chart.remesh(grid_spacing=default_spacing(chart.outline_,
+                                                              len(chart.embedding_)))
 
     # -- persistence ---------------------------------------------------------------------------
     def state(self) -> tuple[dict, dict[str, np.ndarray]]:

@@ -81,6 +81,8 @@ class SurfaceReconstructor(BaseEstimator):
     n_neighbors : K of the neighbourhood graph; None chooses it automatically.
     max_layers, max_neurons, activation, retrain : the adaptive MLP search (`AdaptiveMLP`).
     grid_spacing : spacing of the interior grid in embedding units; None derives it from density.
+        Given, the grid lies on the lattice of that spacing: a new λ or depth moves only the
+        vertices near the outline.
     extend : grow the spline polygon outward before meshing, in local point spacings
         (`reconstruct.outline`): "auto" brings a multi-depth boundary out to where a 1-deep loop
         through the outermost samples lies (the deeper loops' extra inset), the furthest the
@@ -310,7 +312,8 @@ class SurfaceReconstructor(BaseEstimator):
         bounded = time.perf_counter()
         spacing = self.grid_spacing or default_spacing(outline, len(self.embedding_))
         boundary_vertices = sample_ring(outline, spacing)
-        vertices_2d, faces = mesh_inside(outline, boundary_vertices, spacing)
+        vertices_2d, faces = mesh_inside(outline, boundary_vertices, spacing,
+                                         lattice=self.grid_spacing is not None)
         vertices_3d = self.surface_map_(vertices_2d)
         self.boundary_points_ = interpolants
         self.spline_ = spline

@@ -124,3 +124,14 @@ def test_a_one_chart_state_is_not_an_atlas(tmp_path):
     with pytest.raises(InvalidInputError, match="not an atlas state"):
         AtlasReconstructor.load(path)
     assert not hasattr(SurfaceReconstructor.load(path), "atlas_")
+
+
+def test_reconstruct_saves_an_atlas_that_remesh_reads(tmp_path):
+    cloud, out, state = tmp_path / "sphere.xyz", tmp_path / "mesh.ply", tmp_path / "state.npz"
+    np.savetxt(cloud, sphere_cloud())
+    assert main(["--quiet", "reconstruct", str(cloud), "-o", str(out), "--save", str(state)]) == 0
+    assert hasattr(SurfaceReconstructor.load(state), "atlas_")
+    again = tmp_path / "again.ply"
+    assert main(["--quiet", "remesh", str(state), "-o", str(again), "--depth", "3"]) == 0
+    assert trimesh.load(out, force="mesh").is_watertight
+    assert trimesh.load(again, force="mesh").is_watertight

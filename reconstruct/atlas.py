@@ -16,27 +16,42 @@ a warning if it still is not watertight); otherwise open where the data has a bo
 wider than a few spacings.
 
 `remesh(lam=..., depth=...)` re-meshes every chart through its stored ONNX map (no retraining)
-and joins them again.
+and joins them again, re-evaluating the join's distance only near the samples that moved
+(`reconstruct.sdf_grid`). `save` / `load` (and `SurfaceReconstructor.save` / `load` of an atlas)
+carry the charts' maps, the partition, the signs and the join's grid to another process, where
+`remesh` runs without torch.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import trimesh
 from sklearn.base import BaseEstimator
 
 from .charts import ChartDecomposition
-from .errors import NotFittedError, ReconstructionWarning
+from .errors import InvalidInputError, NotFittedError, ReconstructionWarning
 from .faithfulness import UNEXPLAINED_LIMIT
+from .io import one_line, read_state, write_state
 from .join import chart_samples, exterior_votes, implicit_mesh, orient_charts, thin_shell
+from .meshing import default_spacing
+from .sdf_grid import SparseSDF
 from .sheet_graph import SheetGraph
 from .validation import check_points
 
 log = logging.getLogger(__name__)
+
+ATLAS_FORMAT = "scanstation-atlas/1"
+#: Parameters of the fit only (a loaded atlas re-meshes, it does not fit): not saved.
+_FIT_ONLY_PARAMS = ("graph",)
+#: Boundary depths whose samples `state` computes and saves for every chart, so a loaded atlas
+#: re-meshes to another of them without sampling its boundaries first (~1 s for 35 charts).
+SAVED_DEPTHS = (1, 2, 3)
 
 #: Largest share of a chart mesh's adjacent face pairs folded back onto each other (> 120°).
 FOLD_LIMIT = 0.02
@@ -146,6 +161,7 @@ class AtlasReconstructor(BaseEstimator):
         self.chart_points_ = [fitted[i][1] for i in order]
         self._chart_ids = order
         self.timings_["fits"] = time.perf_counter() - started - self.timings_["charts"]
+        self._pin_chart_grids()  # the charts' grids on their lattices: re-meshing is incremental
         self.signs_ = orient_charts([c.mesh_ for c in self.charts_], self.chart_points_, points)
         self._join()
         self.timings_["total"] = time.perf_counter() - started
@@ -180,7 +196,9 @@ class AtlasReconstructor(BaseEstimator):
         reconstructor.fold_share_ = folds
         return reconstructor, ("; ".join(faults) or None)
 
-    def _join(self) -> None:
+    def _join(self, decide: bool = True) -> None:
+        """Join the charts' meshes into ``mesh_``. ``decide``: find again which side of each
+        chart is outside and whether the cloud is closed (`fit`); `remesh` keeps the fit's."""
         started = time.perf_counter()
         meshes = [c.mesh_ for c in self.charts_]
         labels = self.decomposition_.labels_.copy()
@@ -194,39 +212,21 @@ class AtlasReconstructor(BaseEstimator):
         chart_samples_ = [m.vertices[k] for m, k in zip(meshes, kept, strict=True)]
         chart_normals = [s * m.vertex_normals[k]
                          for m, k, s in zip(meshes, kept, self.signs_, strict=True)]
-        # Which side of each chart is outside the object (`exterior_votes`): a closed cloud's
-        # charts say so clearly (mug, torus, hook, figurine 20k: 81–100 % of the samples);
-        # an open one's, seen from both sides, do not (relief: none).
-        # A hole in the samples wider than twice the band (points the sheet graph left out)
-        # lets the outside in and every chart looks two-sided: a wider seal is tried too.
-        sizes = np.array([len(k) for k in kept], float)
-        for seal in (self.band, 2 * self.band):
-            votes, two_sided = exterior_votes(chart_samples_, chart_normals, voxel, band=seal)
-            outward = np.abs(votes) >= VOTE_LIMIT
-            self.closed_ = bool(sizes[outward].sum() >= CLOSED_SHARE * max(sizes.sum(), 1.0))
-            if self.closed_:
-                break
-        self.votes_, self.seal_ = votes, seal
-        if self.closed_:
-            # the others keep their orientation along the overlaps, turned like most charts
-            turn = np.sign(np.sum(sizes[outward] * np.sign(votes[outward]))) or 1.0
-            self.signs_ = self.signs_ * np.where(outward, np.sign(votes), turn)
-            samples, normals = [], []
-            for s, n, out, vote, both in zip(chart_samples_, chart_normals, outward, votes,
-                                             two_sided, strict=True):
-                if out or both < VOTE_LIMIT:
-                    samples.append(s)
-                    normals.append((np.sign(vote) if out else turn) * n)
-                else:  # a part thinner than the noise, charted once: a thin closed shell
-                    shell = thin_shell(s, n, self.shell * voxel)
-                    samples.append(shell[0])
-                    normals.append(shell[1])
-        else:
-            samples, normals = chart_samples_, chart_normals
+        if decide or not hasattr(self, "shells_"):
+            self._decide_sides(chart_samples_, chart_normals, kept, voxel)
+            chart_normals = [s * m.vertex_normals[k]
+                             for m, k, s in zip(meshes, kept, self.signs_, strict=True)]
+        samples, normals = [], []
+        for s, n, shell in zip(chart_samples_, chart_normals, self.shells_, strict=True):
+            if shell:  # a part thinner than the noise, charted once: a thin closed shell
+                s, n = thin_shell(s, n, self.shell * voxel)
+            samples.append(s)
+            normals.append(n)
         samples, normals = np.concatenate(samples), np.concatenate(normals)
         uncharted = self._uncharted(samples) if self.closed_ else None
         self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim,
-                                   closed=self.closed_, seal=seal, uncharted=uncharted)
+                                   closed=self.closed_, seal=self.seal_, uncharted=uncharted,
+                                   grid=self.__dict__.setdefault("_sdf", SparseSDF(voxel)))
         self.samples_, self.normals_ = samples, normals
         self.watertight_ = bool(self.mesh_.is_watertight)
         self.winding_consistent_ = bool(self.mesh_.is_winding_consistent)
@@ -235,6 +235,29 @@ class AtlasReconstructor(BaseEstimator):
             warnings.warn("the cloud looks closed (its charts face out of one volume) but the "
                           "joined mesh is not watertight", ReconstructionWarning, stacklevel=3)
         self.timings_["join"] = time.perf_counter() - started
+
+    def _decide_sides(self, chart_samples_, chart_normals, kept, voxel) -> None:
+        """Set ``closed_``, ``seal_``, ``votes_``, ``shells_`` (c,) bool and turn ``signs_``.
+
+        Which side of each chart is outside the object (`exterior_votes`): a closed cloud's
+        charts say so clearly (mug, torus, hook, figurine 20k: 81–100 % of the samples); an
+        open one's, seen from both sides, do not (relief: none). A hole in the samples wider
+        than twice the band (points the sheet graph left out) lets the outside in and every
+        chart looks two-sided: a wider seal is tried too."""
+        sizes = np.array([len(k) for k in kept], float)
+        for seal in (self.band, 2 * self.band):
+            votes, two_sided = exterior_votes(chart_samples_, chart_normals, voxel, band=seal)
+            outward = np.abs(votes) >= VOTE_LIMIT
+            self.closed_ = bool(sizes[outward].sum() >= CLOSED_SHARE * max(sizes.sum(), 1.0))
+            if self.closed_:
+                break
+        self.votes_, self.seal_ = votes, seal
+        self.shells_ = np.zeros(len(kept), bool)
+        if self.closed_:
+            # the others keep their orientation along the overlaps, turned like most charts
+            turn = np.sign(np.sum(sizes[outward] * np.sign(votes[outward]))) or 1.0
+            self.signs_ = self.signs_ * np.where(outward, np.sign(votes), turn)
+            self.shells_ = ~outward & (two_sided >= VOTE_LIMIT)
 
     def _uncharted(self, samples: np.ndarray) -> np.ndarray:
         """Input points (p, 3) farther than ``UNCHARTED`` spacings from every sample, in
@@ -251,10 +274,17 @@ class AtlasReconstructor(BaseEstimator):
 
     def remesh(self, **params) -> trimesh.Trimesh:
         """Re-mesh every chart with new ``lam``, ``depth``, ... through its ONNX map (no
-        retraining) and join them again. Returns and stores ``mesh_``."""
+        retraining) and join them again. Returns and stores ``mesh_``.
+
+        Each chart keeps the grid spacing it was fitted with (`fit` sets its ``grid_spacing``),
+        and its grid lies on the lattice of that spacing, so a new outline moves only the
+        vertices near it; the join re-evaluates its distance only near the samples that moved
+        (`SparseSDF.update`) and gives back the same mesh when none of its samples did (an
+        outline change that stays in the charts' overlap rings)."""
         if not hasattr(self, "charts_"):
             raise NotFittedError("fit() the atlas first")
         started = time.perf_counter()
+        self._pin_chart_grids()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", ReconstructionWarning)
             for chart in self.charts_:
@@ -264,6 +294,116 @@ class AtlasReconstructor(BaseEstimator):
             warnings.warn(f"{len(said)} of {len(self.charts_)} charts: {said[0].message}",
                           ReconstructionWarning, stacklevel=2)
         self.timings_["remesh charts"] = time.perf_counter() - started
-        self._join()
+        self._join(decide=False)
         self.timings_["remesh"] = time.perf_counter() - started
+        log.info("atlas re-meshed: %d of %d join samples changed, %d nodes evaluated (%.0f ms)",
+                 self._sdf.n_changed_, len(self.samples_), self._sdf.n_evaluated_,
+                 1000 * self.timings_["remesh"])
         return self.mesh_
+
+    def _pin_chart_grids(self) -> None:
+        """Keep each chart's fitted grid spacing (its ``grid_spacing``) from now on, and mesh it
+        again on the lattice of that spacing, where a new outline leaves the interior be."""
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ReconstructionWarning)  # said by the fit already
+            for chart in self.charts_:
+                if chart.grid_spacing is None:
+                    chart.remesh(grid_spacing=default_spacing(chart.outline_,
+                                                              len(chart.embedding_)))
+
+    # -- persistence ---------------------------------------------------------------------------
+    def state(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """The fitted state as (meta, arrays): every chart's `SurfaceReconstructor.state`
+        (embedded points, ONNX map, parameters, boundary samples; arrays ``chart<i>_*``), the
+        cloud ``points`` (n, 3), its partition ``labels`` (n,), the ``chart_points`` of each
+        chart (flat, cut at ``chart_offsets``) and the ``signs`` (c,) — what re-joining needs,
+        and no network — and the join's grid and last mesh (`SparseSDF.state`, ``join_*``), so
+        a loaded atlas re-meshes incrementally too."""
+        if not hasattr(self, "charts_"):
+            raise NotFittedError("nothing to save: fit() the atlas first")
+        self._pin_chart_grids()
+        charts, arrays = [], {}
+        for index, chart in enumerate(self.charts_):
+            depth = chart.depth
+            try:
+                for saved_depth in SAVED_DEPTHS:
+                    chart.depth = saved_depth
+                    chart._boundary_points()  # cached in the chart, saved with its state
+            finally:
+                chart.depth = depth
+            meta, chart_arrays = chart.state(prefix=f"chart{index}_")
+            charts.append(meta)
+            arrays.update(chart_arrays)
+        meta = {
+            "format": ATLAS_FORMAT,
+            "params": {k: v for k, v in self.get_params(deep=False).items()
+                       if k not in _FIT_ONLY_PARAMS},
+            "charts": charts,
+            "chart_ids": [int(i) for i in self._chart_ids],
+            "spacing": float(self.decomposition_.spacing_),
+            "faults": list(self.faults_),
+            "closed": bool(self.closed_),
+            "seal": float(self.seal_),
+        }
+        if hasattr(self, "_sdf") and hasattr(self._sdf, "values_"):
+            meta["join"], join_arrays = self._sdf.state(prefix="join_")
+            arrays.update(join_arrays)
+        sizes = [len(members) for members in self.chart_points_]
+        arrays.update(points=self.points_, labels=self.decomposition_.labels_,
+                      chart_points=np.concatenate(self.chart_points_),
+                      chart_offsets=np.cumsum([0, *sizes]), signs=np.asarray(self.signs_),
+                      shells=np.asarray(self.shells_, bool))
+        return meta, arrays
+
+    @classmethod
+    def from_state(cls, meta: dict, arrays: dict) -> AtlasReconstructor:
+        """Rebuild a fitted atlas from `state`; it can `remesh()` at once (no torch needed).
+        Its ``decomposition_`` holds ``labels_`` and ``spacing_`` only; ``mesh_`` comes with
+        the first `remesh`."""
+        from .pipeline import SurfaceReconstructor
+
+        self = cls(**meta["params"])
+        self.charts_ = [SurfaceReconstructor.from_state(chart, arrays, prefix=f"chart{i}_")
+                        for i, chart in enumerate(meta["charts"])]
+        self.points_ = np.asarray(arrays["points"], float)
+        labels = np.asarray(arrays["labels"], np.int64)
+        offsets = np.asarray(arrays["chart_offsets"], np.int64)
+        flat = np.asarray(arrays["chart_points"], np.int64)
+        self.chart_points_ = [flat[a:b] for a, b in zip(offsets[:-1], offsets[1:], strict=True)]
+        self.signs_ = np.asarray(arrays["signs"], float)
+        self._chart_ids = [int(i) for i in meta["chart_ids"]]
+        n_charts = len(self.charts_)
+        if not (len(self.signs_) == len(self.chart_points_) == len(self._chart_ids) == n_charts
+                == len(arrays["shells"])
+                and labels.shape == (len(self.points_),) and self.points_.ndim == 2
+                and (len(flat) == 0 or 0 <= flat.min() and flat.max() < len(self.points_))):
+            raise ValueError("its charts, signs and points do not agree")
+        self.decomposition_ = ChartDecomposition(chart_size=self.chart_size,
+                                                 overlap=self.overlap)
+        self.decomposition_.labels_ = labels
+        self.decomposition_.spacing_ = float(meta["spacing"])
+        self.faults_ = [str(fault) for fault in meta["faults"]]
+        self.closed_, self.seal_ = bool(meta["closed"]), float(meta["seal"])
+        self.shells_ = np.asarray(arrays["shells"], bool)
+        self.timings_ = {}
+        if "join" in meta:  # the join's grid and last mesh: the first re-mesh is incremental
+            self._sdf = SparseSDF.from_state(meta["join"], arrays, prefix="join_")
+        return self
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the fitted state (`state`) atomically to an .npz file."""
+        return write_state(path, *self.state())
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> AtlasReconstructor:
+        """Read an atlas written by `save` (or by `SurfaceReconstructor.save` of an atlas).
+        A damaged or foreign file raises `InvalidInputError` in one line."""
+        meta, arrays = read_state(path)
+        if meta.get("format") != ATLAS_FORMAT:
+            raise InvalidInputError(
+                f"{path}: not an atlas state (format {meta.get('format')!r})")
+        try:
+            return cls.from_state(meta, arrays)
+        except Exception as exc:  # a missing array, a bad header field, a broken ONNX model
+            raise InvalidInputError(
+                f"{path}: damaged atlas state ({one_line(exc)})") from exc

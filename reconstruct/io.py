@@ -1,7 +1,10 @@
-"""Reading point clouds (PLY, XYZ/CSV text, NPY) and writing meshes (PLY, OBJ, STL, GLB)."""
+"""Reading point clouds (PLY, XYZ/CSV text, NPY), writing meshes (PLY, OBJ, STL, GLB), and the
+fitted-state archive (`write_state` / `read_state`: a JSON header and named arrays in one .npz)."""
 
 from __future__ import annotations
 
+import io
+import json
 import os
 import tempfile
 from pathlib import Path
@@ -132,3 +135,39 @@ def write_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> Path:
     if isinstance(data, str):
         data = data.encode("utf-8")
     return write_bytes_atomic(path, data)
+
+
+def write_state(path: str | os.PathLike, meta: dict, arrays: dict[str, np.ndarray]) -> Path:
+    """Write a fitted state: ``meta`` (JSON-able dict, its ``"format"`` names the kind) and
+    named ``arrays`` into one compressed .npz, atomically. No pickles: loading runs no code."""
+    buffer = io.BytesIO()
+    header = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez_compressed(buffer, meta=header, **arrays)
+    return write_bytes_atomic(path, buffer.getvalue())
+
+
+def read_state(path: str | os.PathLike) -> tuple[dict, dict[str, np.ndarray]]:
+    """Read a state written by `write_state`: (meta, arrays), every array read and checked
+    (a truncated or damaged archive fails here, not later). Raises `InvalidInputError` with one
+    line naming the file and the cause."""
+    path = Path(path)
+    if not path.is_file():
+        raise InvalidInputError(f"{path}: no such reconstruction state file")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: data[name] for name in data.files}
+        meta = json.loads(bytes(arrays.pop("meta")).decode())
+        if not isinstance(meta, dict):
+            raise ValueError("its header is not a JSON object")
+    except Exception as exc:  # zip, CRC, JSON and missing-header failures alike: one line
+        raise InvalidInputError(
+            f"{path}: not a ScanStation reconstruction state ({one_line(exc)})") from exc
+    return meta, arrays
+
+
+def one_line(exc: BaseException) -> str:
+    """``exc`` as one line: its type when it says nothing, newlines folded."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    if isinstance(exc, KeyError):
+        text = f"missing {text}"
+    return text if len(text) <= 200 else text[:197] + "..."

@@ -36,7 +36,8 @@ from scipy.sparse.csgraph import (
 )
 from scipy.spatial import cKDTree
 
-_IMLS_NEIGHBOURS = 8
+from .sdf_grid import IMLS_NEIGHBOURS, IMLS_WIDTH, SparseSDF
+
 #: Voxels from the nearest sample within which a closed join trusts the tangent planes alone.
 _TRUSTED = 1.0
 #: A closed join opens its signed grid (grey opening, a cube of this many voxels: thin voids
@@ -191,7 +192,7 @@ def thin_shell(samples, normals, half: float):
 def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float = 1.5,
                   min_share: float = 0.005, data=None, hole: float = 12.0,
                   closed: bool = False, seal: float | None = None,
-                  uncharted=None) -> trimesh.Trimesh:
+                  uncharted=None, grid: SparseSDF | None = None) -> trimesh.Trimesh:
     """One mesh through oriented samples (m, 3) with unit normals (m, 3).
 
     voxel : grid spacing; band : the surface is sought within ``band`` voxels of a sample;
@@ -209,47 +210,52 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     between the samples narrower than twice this are capped;
     uncharted : (p, 3) data points no chart's samples represent (a junction the charts left
     out): in a closed join they occupy the grid like samples, so the cap across their gap
-    passes by them."""
+    passes by them;
+    grid : a `SparseSDF` kept between calls: the distance is re-evaluated only near the samples
+    that changed since, and the same samples give back the same mesh at once."""
     from skimage.measure import marching_cubes  # scikit-image: only on the joining path
 
     samples = np.asarray(samples, float)
     normals = np.asarray(normals, float)
-    if closed:
-        seal = band if seal is None else seal
-        origin, shape, exterior, free = exterior_grid(samples, voxel, seal, normals,
-                                                      extra=uncharted)
-    else:
-        origin, shape = _grid(samples, voxel, band + 2)
-    axes = [origin[i] + voxel * np.arange(shape[i]) for i in range(3)]
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    tree = cKDTree(samples)
+    sdf = SparseSDF(voxel, band) if grid is None else grid
+    sdf.voxel, sdf.band = voxel, band
+    sdf.follow(samples, normals)
+    key = (trim, min_share, hole, closed, seal)
+    if data is None and sdf.n_changed_ == 0 and getattr(sdf, "mesh_key_", None) == key:
+        return sdf.mesh_.copy(include_cache=True)  # the same samples: the same mesh
+    tree = sdf.tree_
     if closed:
         from scipy import ndimage
 
+        seal = band if seal is None else seal
+        origin, shape, exterior, free = exterior_grid(samples, voxel, seal, normals,
+                                                      extra=uncharted)
+        axes = [origin[i] + voxel * np.arange(shape[i]) for i in range(3)]
+        nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
         near = ~free.ravel()
         # The closing of the samples by the seal (Serra 1982): seal voxels in from the exterior.
         # It caps a gap between the samples near their level instead of at the seal's edge.
         values = np.clip(seal * voxel - voxel * ndimage.distance_transform_edt(~exterior),
                          -(band + 1) * voxel, (band + 1) * voxel).ravel()
         closing = values[near]
-    else:
-        distance, _ = tree.query(grid, distance_upper_bound=(band + 1) * voxel)
-        near = np.isfinite(distance)
-        values = np.full(len(grid), voxel * (band + 1))
-    k = min(_IMLS_NEIGHBOURS, len(samples))
-    d, index = tree.query(grid[near], k=k)
-    offsets = np.einsum("gki,gki->gk", grid[near][:, None, :] - samples[index], normals[index])
-    weights = np.exp(-(d / (1.5 * voxel)) ** 2)
-    values[near] = (weights * offsets).sum(axis=1) / np.maximum(weights.sum(axis=1), 1e-300)
-    if closed:  # the tangent planes within a voxel of a sample, the closing from two on
-        blend = np.clip(d[:, 0] / voxel - _TRUSTED, 0.0, 1.0)[:, None].ravel()
+        k = min(IMLS_NEIGHBOURS, len(samples))
+        d, index = tree.query(nodes[near], k=k)
+        d, index = d.reshape(-1, k), index.reshape(-1, k)
+        offsets = np.einsum("gki,gki->gk", nodes[near][:, None, :] - samples[index],
+                            normals[index])
+        weights = np.exp(-(d / (IMLS_WIDTH * voxel)) ** 2)
+        values[near] = (weights * offsets).sum(axis=1) / np.maximum(weights.sum(axis=1), 1e-300)
+        # the tangent planes within a voxel of a sample, the closing from two on
+        blend = np.clip(d[:, 0] / voxel - _TRUSTED, 0.0, 1.0)
         values[near] = (1 - blend) * values[near] + blend * closing
-    values = values.reshape(shape)
-    if closed and _OPEN:
-        values = ndimage.grey_opening(values, size=(_OPEN,) * 3)
-    if closed and _SMOOTH:
-        values = ndimage.gaussian_filter(values, _SMOOTH)
-    mask = None if closed else (distance <= band * voxel).reshape(shape)
+        values = values.reshape(shape)
+        if _OPEN:
+            values = ndimage.grey_opening(values, size=(_OPEN,) * 3)
+        if _SMOOTH:
+            values = ndimage.gaussian_filter(values, _SMOOTH)
+        mask = None
+    else:
+        values, mask, origin = sdf.values_, sdf.mask_, sdf.origin_
     vertices, faces, _, _ = marching_cubes(values, level=0.0, spacing=(voxel,) * 3, mask=mask,
                                            gradient_direction="ascent", allow_degenerate=False)
     mesh = trimesh.Trimesh(vertices + origin, faces, process=True)
@@ -260,7 +266,7 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         far = near_tree.query(mesh.triangles_center)[0] > trim * voxel
         mesh.update_faces(~far)
         mesh.remove_unreferenced_vertices()
-    pieces = mesh.split(only_watertight=False)
+    pieces = mesh.split(only_watertight=False) if n_pieces(mesh.faces) > 1 else [mesh]
     if len(pieces) > 1:
         largest = max(len(p.faces) for p in pieces)
         mesh = trimesh.util.concatenate([p for p in pieces if len(p.faces) >= min_share * largest])
@@ -270,6 +276,8 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         mesh = close_small_holes(mesh, max_length=hole * voxel)
     if mesh.is_watertight and mesh.volume < 0:
         mesh.invert()
+    if grid is not None and data is None:
+        sdf.mesh_, sdf.mesh_key_ = mesh.copy(include_cache=True), key
     return mesh
 
 
@@ -304,12 +312,29 @@ def split_nonmanifold(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
                            fan.reshape(-1, 3), process=False)
 
 
+def n_pieces(faces: np.ndarray) -> int:
+    """Number of pieces of ``faces`` (f, 3) joined across edges of exactly two faces (as
+    trimesh's ``split`` counts them), found from one integer key per edge (fast)."""
+    if len(faces) == 0:
+        return 0
+    ordered = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1).astype(np.int64)
+    key = ordered[:, 0] * (int(ordered.max()) + 1) + ordered[:, 1]
+    order = np.argsort(key, kind="stable")
+    run_start = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1]])
+    run_length = np.diff(np.r_[run_start, len(key)])
+    pairs = run_start[run_length == 2]
+    first, second = order[pairs] // 3, order[pairs + 1] // 3
+    adjacency = coo_matrix((np.ones(len(first)), (first, second)), shape=(len(faces),) * 2)
+    return int(connected_components(adjacency, directed=False)[0])
+
+
 def border_loops(faces: np.ndarray) -> list[np.ndarray]:
     """Closed loops (vertex indices, in the faces' direction) of the edges of ``faces`` (f, 3)
     that belong to one face only. A vertex where two loops touch is walked through once each."""
     directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    ordered = np.sort(directed, axis=1)
-    _, inverse, counts = np.unique(ordered, axis=0, return_inverse=True, return_counts=True)
+    ordered = np.sort(directed, axis=1).astype(np.int64)
+    key = ordered[:, 0] * (int(ordered.max(initial=0)) + 1) + ordered[:, 1]  # one int per edge
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     border = directed[counts[inverse.ravel()] == 1]
     following: dict[int, list[int]] = {}
     for a, b in border.tolist():

@@ -37,13 +37,15 @@ def sample_ring(polygon: np.ndarray, spacing: float) -> np.ndarray:
 
 
 def mesh_inside(
-    polygon: np.ndarray, boundary_points: np.ndarray, spacing: float
+    polygon: np.ndarray, boundary_points: np.ndarray, spacing: float, lattice: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
     """Triangulate the region inside ``polygon``.
 
     polygon : (p, 2) dense closed polygon of the boundary spline.
     boundary_points : (b, 2) points on the spline used as boundary vertices.
     spacing : grid spacing, in the units of the polygon.
+    lattice : put the grid on the lattice ``spacing · ℤ²`` (else it starts at the polygon's
+        lower corner): a new outline then keeps the interior nodes where they were.
     Returns vertices (v, 2) float64 and faces (f, 3) int64, counter-clockwise.
     """
     if not np.isfinite(spacing) or spacing <= 0:
@@ -54,7 +56,7 @@ def mesh_inside(
     region = shapely.Polygon(polygon)
     shapely.prepare(region)
     # index: (ny+1, nx+1) vertex id of each grid node, -1 when unused; full: (ny, nx) cells.
-    origin, index, grid_xy, full = _grid_nodes(polygon, spacing)
+    origin, index, grid_xy, full = _grid_nodes(polygon, spacing, lattice)
 
     n_boundary = len(boundary_points)
     vertices = np.vstack([boundary_points, grid_xy])
@@ -83,8 +85,15 @@ def mesh_inside(
     return _drop_unused(vertices, faces)
 
 
-def _grid_nodes(polygon, spacing):
+def _grid_nodes(polygon, spacing, lattice=False):
     lo = polygon.min(axis=0)
+    first = np.floor(lo / spacing)  # on the lattice: the first node's whole-number coordinates
+    if lattice:
+        lo = first * spacing
+
+    def node_xy(i, j):  # on the lattice, a node's coordinates do not depend on lo
+        ij = np.column_stack([i, j]).astype(np.float64)
+        return (first + ij) * spacing if lattice else lo + spacing * ij
     hi = polygon.max(axis=0)
     nx = int(np.ceil((hi[0] - lo[0]) / spacing)) + 1
     ny = int(np.ceil((hi[1] - lo[1]) / spacing)) + 1
@@ -103,16 +112,14 @@ def _grid_nodes(polygon, spacing):
     near = np.zeros_like(inside)
     if candidate.any():
         cj, ci = np.nonzero(candidate)
-        xy = lo + spacing * np.column_stack([ci, cj])
-        distance, _ = cKDTree(ring).query(xy)
+        distance, _ = cKDTree(ring).query(node_xy(ci, cj))
         near[cj, ci] = distance < 0.5 * spacing
     used = inside & ~near
     index = np.full(used.shape, -1, dtype=np.int64)
     index[used] = np.arange(int(used.sum()))
     full = used[:-1, :-1] & used[1:, :-1] & used[:-1, 1:] & used[1:, 1:]
     uj, ui = np.nonzero(used)
-    xy = lo + spacing * np.column_stack([ui, uj]).astype(np.float64)
-    return lo, index, xy, full
+    return lo, index, node_xy(ui, uj), full
 
 
 def _rasterize(polygon, origin, spacing, shape):

@@ -2,16 +2,15 @@
 
 A fitted reconstruction keeps the embedded points and the ONNX surface map, so `remesh` with a
 new λ, boundary depth or grid spacing runs in milliseconds without retraining, and `save` /
-`load` carry that state to another process. ``fit(points, warm_start=earlier)`` fits the same
-surface again after more points arrived: the new embedding is aligned to the earlier one
+`load` carry that state to another process (of an atlas: every chart's,
+`AtlasReconstructor.state`). ``fit(points, warm_start=earlier)`` fits the same surface again
+after more points arrived: the new embedding is aligned to the earlier one
 (`reconstruct.alignment`) and the earlier network fine-tuned, with no architecture search.
 """
 
 from __future__ import annotations
 
 import copy
-import io
-import json
 import logging
 import os
 import time
@@ -34,7 +33,7 @@ from .faithfulness import (
     neighbour_preservation,
     unexplained_fraction,
 )
-from .io import write_bytes_atomic
+from .io import one_line, read_state, write_state
 from .meshing import default_spacing, mesh_inside, sample_ring
 from .mlp import AdaptiveMLP
 from .outline import border_inset, border_spacing, extend_outline
@@ -82,6 +81,8 @@ class SurfaceReconstructor(BaseEstimator):
     n_neighbors : K of the neighbourhood graph; None chooses it automatically.
     max_layers, max_neurons, activation, retrain : the adaptive MLP search (`AdaptiveMLP`).
     grid_spacing : spacing of the interior grid in embedding units; None derives it from density.
+        Given, the grid lies on the lattice of that spacing: a new λ or depth moves only the
+        vertices near the outline.
     extend : grow the spline polygon outward before meshing, in local point spacings
         (`reconstruct.outline`): "auto" brings a multi-depth boundary out to where a 1-deep loop
         through the outermost samples lies (the deeper loops' extra inset), the furthest the
@@ -311,7 +312,8 @@ class SurfaceReconstructor(BaseEstimator):
         bounded = time.perf_counter()
         spacing = self.grid_spacing or default_spacing(outline, len(self.embedding_))
         boundary_vertices = sample_ring(outline, spacing)
-        vertices_2d, faces = mesh_inside(outline, boundary_vertices, spacing)
+        vertices_2d, faces = mesh_inside(outline, boundary_vertices, spacing,
+                                         lattice=self.grid_spacing is not None)
         vertices_3d = self.surface_map_(vertices_2d)
         self.boundary_points_ = interpolants
         self.spline_ = spline
@@ -392,54 +394,72 @@ class SurfaceReconstructor(BaseEstimator):
 
     # -- persistence ---------------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> Path:
-        """Write the fitted state (embedded points, ONNX model, parameters) atomically."""
+        """Write the fitted state (embedded points, ONNX model, parameters) atomically; of an
+        atlas, every chart's state and what re-joining needs (`AtlasReconstructor.state`)."""
         if hasattr(self, "atlas_"):
-            raise InvalidInputError(
-                "saving an atlas of charts is not supported yet: its mesh is written, its state "
-                "is not (re-mesh it in the same process with remesh())")
+            meta, arrays = self.atlas_.state()
+            meta["reconstructor"] = {"params": self._saved_params(),
+                                     "atlas_reason": self.atlas_reason_}
+            return write_state(path, meta, arrays)
         if not hasattr(self, "surface_map_"):
             raise NotFittedError("nothing to save: fit() the reconstructor first")
-        path = Path(path)
+        return write_state(path, *self.state())
+
+    def _saved_params(self) -> dict:
+        return {k: v for k, v in self.get_params(deep=False).items() if k not in _TRAINING_PARAMS}
+
+    def state(self, prefix: str = "") -> tuple[dict, dict[str, np.ndarray]]:
+        """The one-chart fitted state: (meta, arrays named ``prefix`` + embedding / points /
+        onnx), as `save` writes it."""
         meta = {
             "format": STATE_FORMAT,
-            "params": {k: v for k, v in self.get_params(deep=False).items()
-                       if k not in _TRAINING_PARAMS},
+            "params": self._saved_params(),
             "embedding_method": self.embedding_method_,
             "n_neighbors": int(self.n_neighbors_),
             "hidden_layers": list(self.hidden_layers_),
         }
-        buffer = io.BytesIO()
-        np.savez_compressed(
-            buffer,
-            meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
-            embedding=self.embedding_,
-            points=self.points_,
-            onnx=np.frombuffer(self.surface_map_.to_bytes(), dtype=np.uint8),
-        )
-        return write_bytes_atomic(path, buffer.getvalue())
+        arrays = {f"{prefix}embedding": self.embedding_, f"{prefix}points": self.points_,
+                  f"{prefix}onnx": np.frombuffer(self.surface_map_.to_bytes(), dtype=np.uint8)}
+        for key, points in getattr(self, "_boundary_cache", {}).items():
+            if key != "tree":  # the boundary samples of each (boundary, depth, n_corners) used
+                arrays[f"{prefix}boundary_{key[0]}_{key[1]}_{key[2]}"] = points
+        return meta, arrays
+
+    @classmethod
+    def from_state(cls, meta: dict, arrays: dict, prefix: str = "") -> SurfaceReconstructor:
+        """Rebuild a one-chart reconstruction from `state`; it can `remesh()` at once."""
+        self = cls(**meta["params"])
+        self.embedding_ = np.asarray(arrays[f"{prefix}embedding"], float)
+        self.points_ = np.asarray(arrays[f"{prefix}points"], float)
+        self.embedding_method_ = meta["embedding_method"]
+        self.n_neighbors_ = int(meta["n_neighbors"])
+        self.hidden_layers_ = tuple(meta["hidden_layers"])
+        self.surface_map_ = OnnxSurfaceMap.from_bytes(bytes(arrays[f"{prefix}onnx"]))
+        self._boundary_cache = {}
+        for name in arrays:
+            if name.startswith(f"{prefix}boundary_"):
+                boundary, depth, n_corners = name[len(f"{prefix}boundary_"):].split("_")
+                self._boundary_cache[(boundary, int(depth), int(n_corners))] = np.asarray(
+                    arrays[name], float)
+        return self
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> SurfaceReconstructor:
-        """Read a state written by `save`; the result can `remesh()` at once."""
-        path = Path(path)
-        if not path.is_file():
-            raise InvalidInputError(f"{path}: no such reconstruction state file")
+        """Read a state written by `save` (one chart or an atlas); the result can `remesh()` at
+        once. A damaged or foreign file raises `InvalidInputError` in one line."""
+        from .atlas import ATLAS_FORMAT, AtlasReconstructor
+
+        meta, arrays = read_state(path)
+        kind = meta.get("format")
+        if kind not in (STATE_FORMAT, ATLAS_FORMAT):
+            raise InvalidInputError(f"{path}: unsupported state format {kind!r}")
         try:
-            with np.load(path, allow_pickle=False) as data:
-                meta = json.loads(bytes(data["meta"]).decode())
-                embedding, points, onnx = data["embedding"], data["points"], bytes(data["onnx"])
-        except Exception as exc:
+            if kind == STATE_FORMAT:
+                return cls.from_state(meta, arrays)
+            self = cls(**meta["reconstructor"]["params"])
+            self.atlas_ = AtlasReconstructor.from_state(meta, arrays)
+            self.atlas_reason_ = str(meta["reconstructor"]["atlas_reason"])
+            return self
+        except Exception as exc:  # a missing array, a bad header field, a broken ONNX model
             raise InvalidInputError(
-                f"{path}: not a ScanStation reconstruction state ({exc})"
-            ) from exc
-        if meta.get("format") != STATE_FORMAT:
-            raise InvalidInputError(f"{path}: unsupported state format {meta.get('format')!r}")
-        self = cls(**meta["params"])
-        self.embedding_ = embedding
-        self.points_ = points
-        self.embedding_method_ = meta["embedding_method"]
-        self.n_neighbors_ = meta["n_neighbors"]
-        self.hidden_layers_ = tuple(meta["hidden_layers"])
-        self.surface_map_ = OnnxSurfaceMap.from_bytes(onnx)
-        self._boundary_cache = {}
-        return self
+                f"{path}: damaged reconstruction state ({one_line(exc)})") from exc

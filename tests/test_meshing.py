@@ -76,3 +76,16 @@ def test_bad_spacing_is_an_error():
     polygon = _loop(SHAPES["circle"])
     with pytest.raises(FitError, match="spacing"):
         mesh_inside(polygon, polygon[:-1:10], spacing=0.0)
+
+
+def test_on_the_lattice_a_new_outline_keeps_the_interior_nodes():
+    angle = np.linspace(0, 2 * np.pi, 200)
+    small = np.c_[np.cos(angle), np.sin(angle)]
+    large = np.c_[1.13 * np.cos(angle) + 0.021, 1.07 * np.sin(angle) - 0.013]
+    meshes = [mesh_inside(ring, ring[:-1:4], 0.1, lattice=True)[0] for ring in (small, large)]
+    inner = meshes[0][np.linalg.norm(meshes[0], axis=1) < 0.8]  # well inside both outlines
+    assert len(inner) > 150
+    assert np.isin(inner.view(complex), meshes[1].view(complex)).all()  # the very same nodes
+    off = [mesh_inside(ring, ring[:-1:4], 0.1)[0] for ring in (small, large)]
+    inner = off[0][np.linalg.norm(off[0], axis=1) < 0.8]
+    assert not np.isin(inner.view(complex), off[1].view(complex)).any()  # each its own grid

@@ -1,0 +1,115 @@
+"""Re-meshing a fitted atlas with a new λ or depth, against its fit and Open3D's screened Poisson
+on the same cloud (issue 13: a 50k-vertex atlas mesh re-meshes in ≤ 300 ms).
+
+    python -m bench.remesh_atlas [--object torus] [--points 22000] [--voxel 0.5]
+
+Fits `AtlasReconstructor` to a closed awkward object (σ 0.5 % of the diagonal), states the mesh's
+vertex count, then re-meshes it through the charts' ONNX maps with several λ and a depth change
+and prints each re-mesh's time (wall, and CPU time of this process: the machine may be
+shared), split into the charts' re-meshing and the join (wall), with how many join samples
+moved and how many grid nodes were re-evaluated; then the median re-mesh time against the fit
+and against Poisson; then the same after a save → load in this process (the first re-mesh of a
+loaded atlas evaluates the join's grid afresh).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+from bench.baselines import open3d_available, poisson  # noqa: E402
+from reconstruct.atlas import AtlasReconstructor  # noqa: E402
+from reconstruct.errors import ReconstructionWarning  # noqa: E402
+from sim.awkward_objects import AWKWARD, sample_cloud  # noqa: E402
+
+#: The re-meshes timed: new λ values, a new depth, and back to the fitted parameters.
+CHANGES = [{"lam": 0.7}, {"lam": 1.5}, {"lam": 2.0}, {"lam": 3.0}, {"depth": 3},
+           {"lam": 1.0, "depth": 2}]
+
+
+def timed_remesh(atlas: AtlasReconstructor, change: dict) -> dict:
+    started, cpu = time.perf_counter(), time.process_time()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ReconstructionWarning)
+        mesh = atlas.remesh(**change)
+    seconds = time.perf_counter() - started
+    return {"change": change, "seconds": seconds, "cpu": time.process_time() - cpu,
+            "charts": atlas.timings_["remesh charts"], "join": atlas.timings_["join"],
+            "moved": atlas._sdf.n_changed_, "samples": len(atlas.samples_),
+            "nodes": atlas._sdf.n_evaluated_, "vertices": len(mesh.vertices),
+            "watertight": bool(mesh.is_watertight)}
+
+
+def print_rows(rows: list[dict]) -> None:
+    print(f"{'re-mesh with':22s} {'ms':>7s} {'cpu ms':>7s} {'charts':>7s} {'join':>7s} "
+          f"{'moved':>12s} {'nodes':>8s} {'vertices':>9s} {'closed':>6s}")
+    for r in rows:
+        change = ", ".join(f"{k}={v}" for k, v in r["change"].items())
+        print(f"{change or '(as saved)':22s} {1000 * r['seconds']:7.0f} {1000 * r['cpu']:7.0f} "
+              f"{1000 * r['charts']:7.0f} "
+              f"{1000 * r['join']:7.0f} {r['moved']:5d}/{r['samples']:<6d} {r['nodes']:8d} "
+              f"{r['vertices']:9d} {str(r['watertight']):>6s}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--object", default="torus", choices=sorted(AWKWARD))
+    parser.add_argument("--points", type=int, default=22000)
+    parser.add_argument("--voxel", type=float, default=0.5,
+                        help="join voxel in median spacings (smaller: more vertices)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    points = sample_cloud(AWKWARD[args.object](), args.points, 0.005, random_state=args.seed)
+    started = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ReconstructionWarning)
+        atlas = AtlasReconstructor(voxel=args.voxel, random_state=args.seed).fit(points)
+    fit_seconds = time.perf_counter() - started
+    print(f"\n{args.object}, {args.points} points (σ 0.5 %), {len(atlas.charts_)} charts: "
+          f"{len(atlas.mesh_.vertices)} vertices, {len(atlas.mesh_.faces)} faces, "
+          f"watertight {atlas.watertight_}, fit {fit_seconds:.1f} s\n")
+    rows = [timed_remesh(atlas, change) for change in CHANGES]
+    print_rows(rows)
+    median = float(np.median([r["seconds"] for r in rows]))
+    median_cpu = float(np.median([r["cpu"] for r in rows]))
+    peer = ""
+    if open3d_available():
+        started = time.perf_counter()
+        poisson(points)
+        peer = f", Open3D Poisson {time.perf_counter() - started:.2f} s"
+    else:
+        print("Open3D not installed (pip install -e '.[bench]'): peer skipped", file=sys.stderr)
+    print(f"\nmedian re-mesh {1000 * median:.0f} ms wall, {1000 * median_cpu:.0f} ms CPU "
+          f"(target ≤ 300 ms; load average {os.getloadavg()[0]:.1f}) against fit "
+          f"{fit_seconds:.1f} s{peer}")
+    with tempfile.TemporaryDirectory() as folder:
+        started = time.perf_counter()
+        path = atlas.save(Path(folder) / "atlas.npz")
+        save_seconds = time.perf_counter() - started
+        size = path.stat().st_size
+        started = time.perf_counter()
+        loaded = AtlasReconstructor.load(path)
+        load_seconds = time.perf_counter() - started
+    print(f"\nsaved {size / 1e6:.1f} MB in {save_seconds:.1f} s; loaded in "
+          f"{1000 * load_seconds:.0f} ms; re-meshes of the loaded atlas:")
+    again = [timed_remesh(loaded, change)
+             for change in [{}, {"lam": 2.0}, {"depth": 1}, {"lam": 0.7, "depth": 2}]]
+    print_rows(again)
+    same = np.array_equal(loaded.remesh(**CHANGES[-1]).vertices, atlas.mesh_.vertices)
+    print(f"loaded atlas gives the same mesh as before saving: {same}")
+
+
+if __name__ == "__main__":
+    main()

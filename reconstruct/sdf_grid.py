@@ -1,0 +1,228 @@
+"""The join's signed distance on a voxel grid, evaluated only near the samples, and re-evaluated
+only near the samples that changed.
+
+`implicit_mesh` (reconstruct.join) needs, on a regular grid, the implicit moving-least-squares
+distance (Kolluri 2005: the Gaussian-weighted mean of the signed distances to the 8 nearest
+samples' tangent planes) at the nodes within ``band + 1`` voxels of a sample, and a mask of the
+nodes within ``band`` voxels. Querying every node of the bounding box is what made joining slow
+(a 150 mm torus at 0.5 spacings: millions of nodes, a few percent of them near the surface).
+`SparseSDF.fit` marks the cells holding a sample on a boolean grid, dilates them by ``band + 1``
+voxels (a separable box filter, cheap on booleans) and queries the KD-tree only there: the same
+values as the dense evaluation at every node that matters (the others keep the far constant).
+
+The grid lies on the global lattice ``voxel · ℤ³`` (its origin is a multiple of ``voxel``), so two
+sets of samples that agree somewhere give the same nodes there. `SparseSDF.update` takes new
+samples, finds the ones that appeared or went (rows not matched within ``tolerance``), and
+re-evaluates only the nodes whose 8 nearest samples or band membership they can change: the
+nodes nearer a changed sample than their 8th nearest sample was (or ``band + 1`` voxels).
+The result equals a fresh `fit` on the new samples (tested).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import maximum_filter
+from scipy.spatial import cKDTree
+
+#: Samples whose tangent planes enter a node's distance (Kolluri's k).
+IMLS_NEIGHBOURS = 8
+#: Gaussian width of the IMLS weights, in voxels.
+IMLS_WIDTH = 1.5
+
+
+def lattice_box(samples: np.ndarray, voxel: float, pad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Origin (3,) on the lattice ``voxel · ℤ³`` and shape (3,) int of a grid holding
+    ``samples`` (m, 3) with ``pad`` voxels to spare on every side."""
+    low = (np.floor(samples.min(axis=0) / voxel) - np.ceil(pad)) * voxel
+    high = samples.max(axis=0) + pad * voxel
+    return low, np.ceil((high - low) / voxel).astype(np.int64) + 1
+
+
+def imls(nodes, samples, normals, tree: cKDTree, voxel: float):
+    """IMLS signed distance at ``nodes`` (q, 3) from oriented ``samples`` (m, 3) / ``normals``
+    (m, 3) in ``tree``. Returns values (q,) and the distance to the 8th nearest sample (q,)."""
+    k = min(IMLS_NEIGHBOURS, len(samples))
+    d, index = tree.query(nodes, k=k)
+    d, index = d.reshape(len(nodes), k), index.reshape(len(nodes), k)
+    offsets = np.einsum("gki,gki->gk", nodes[:, None, :] - samples[index], normals[index])
+    weights = np.exp(-(d / (IMLS_WIDTH * voxel)) ** 2)
+    values = (weights * offsets).sum(axis=1) / np.maximum(weights.sum(axis=1), 1e-300)
+    return values, d[:, -1]
+
+
+class SparseSDF:
+    """The IMLS distance of oriented samples on the voxel nodes near them.
+
+    Parameters: ``voxel`` grid spacing; ``band`` the surface is sought within ``band`` voxels
+    of a sample; ``pad`` voxels of grid beyond the samples' bounds (``band + 2``: the dense
+    evaluation's); ``tolerance`` how far (input units; default 1e-9 voxels) a sample or normal
+    may move and still count as the same in `update`.
+
+    Fitted attributes: ``origin_`` (3,), ``shape_`` (3,), ``values_`` (shape) float IMLS
+    distance (``voxel · (band + 1)`` far from the samples), ``mask_`` (shape) bool nodes within
+    ``band`` voxels of a sample, ``tree_`` cKDTree of ``samples_`` (m, 3), ``normals_`` (m, 3),
+    ``reach_`` (largest 8-neighbour distance of a node in the band), ``n_evaluated_`` nodes
+    evaluated by the last fit / update.
+    """
+
+    def __init__(self, voxel: float, band: float = 3.0, pad: float | None = None,
+                 tolerance: float | None = None):
+        self.voxel = voxel
+        self.band = band
+        self.pad = pad
+        self.tolerance = tolerance
+
+    @property
+    def _far(self) -> float:
+        return self.voxel * (self.band + 1)
+
+    def fit(self, samples, normals) -> SparseSDF:
+        """samples, normals : (m, 3) float. Returns self."""
+        samples = np.ascontiguousarray(samples, float)
+        normals = np.ascontiguousarray(normals, float)
+        pad = self.band + 2 if self.pad is None else self.pad
+        self.origin_, self.shape_ = lattice_box(samples, self.voxel, pad)
+        self.samples_, self.normals_ = samples, normals
+        self.tree_ = cKDTree(samples)
+        self.values_ = np.full(tuple(self.shape_), self._far)
+        self.mask_ = np.zeros(tuple(self.shape_), bool)
+        self._eighth = np.zeros(tuple(self.shape_), float)
+        nodes = self._candidates(samples, self.band + 1)
+        self._evaluate(nodes)
+        self.n_evaluated_ = len(nodes)
+        self.n_changed_ = len(samples)
+        self.reach_ = float(self._eighth.max())
+        self._fitted_with = (self.voxel, self.band, self.pad, self.tolerance)
+        return self
+
+    def follow(self, samples, normals) -> SparseSDF:
+        """`update` when fitted with the present parameters, else `fit`. Returns self."""
+        if getattr(self, "_fitted_with", None) == (self.voxel, self.band, self.pad,
+                                                    self.tolerance):
+            return self.update(samples, normals)
+        return self.fit(samples, normals)
+
+    def update(self, samples, normals) -> SparseSDF:
+        """Move to new ``samples`` / ``normals`` (m', 3), re-evaluating only near the changed
+        ones; a fresh `fit` when they leave the grid or most of them changed. Returns self."""
+        samples = np.ascontiguousarray(samples, float)
+        normals = np.ascontiguousarray(normals, float)
+        added, removed = self._changes(samples, normals)
+        self.samples_, self.normals_ = samples, normals
+        self.n_changed_ = int(added.sum() + removed.sum())
+        if self.n_changed_ == 0:
+            self.n_evaluated_ = 0
+            return self
+        origin, shape = lattice_box(samples, self.voxel, self.band + 1)
+        if 2 * self.n_changed_ > len(samples) + len(self._old) or np.any(
+                origin < self.origin_ - 1e-9 * self.voxel) or np.any(
+                origin + self.voxel * (shape - 1) > self.origin_ + self.voxel * (self.shape_ - 1)):
+            changed = self.n_changed_  # most samples moved, or beyond the grid: afresh
+            self.fit(samples, normals)
+            self.n_changed_ = changed
+            return self
+        changed = np.concatenate([samples[added], self._old[removed]])
+        self.tree_ = cKDTree(samples)
+        # a node's 8 nearest samples can change only within its old 8-neighbour distance of a
+        # change; after the change it is at most max(reach, band + 1 voxels) from one
+        radius = max(self.reach_, self._far)
+        nodes = self._candidates(changed, radius / self.voxel)
+        # of those, the nodes a change is nearer than their old 8th neighbour (or the band)
+        xyz = self.origin_ + self.voxel * np.column_stack(
+            np.unravel_index(nodes, tuple(self.shape_))).astype(float)
+        gap = cKDTree(changed).query(xyz, distance_upper_bound=radius * (1 + 1e-9))[0]
+        nodes = nodes[gap <= np.maximum(self._eighth.flat[nodes], self._far)]
+        self.values_.flat[nodes] = self._far
+        self.mask_.flat[nodes] = False
+        self._eighth.flat[nodes] = 0
+        self._evaluate(nodes)
+        self.n_evaluated_ = len(nodes)
+        self.reach_ = max(self.reach_, float(self._eighth.flat[nodes].max(initial=0)))
+        return self
+
+    # -- internals -------------------------------------------------------------------------
+    def _changes(self, samples, normals):
+        """(m',) bool new samples not among the old, (m,) bool old samples not among the new
+        (a sample is the same when it and its normal moved by at most ``tolerance``, and no
+        other new sample claims the same old one)."""
+        self._old = self.samples_
+        tolerance = 1e-9 * self.voxel if self.tolerance is None else self.tolerance
+        if len(samples) == 0 or len(self.samples_) == 0:
+            return np.ones(len(samples), bool), np.ones(len(self.samples_), bool)
+        gap, match = cKDTree(self.samples_).query(samples, distance_upper_bound=2 * tolerance)
+        same = gap <= tolerance
+        same[same] = np.all(np.abs(normals[same] - self.normals_[match[same]])
+                            <= tolerance / self.voxel, axis=1)
+        claims = np.bincount(match[same], minlength=len(self.samples_))
+        same[same] = claims[match[same]] == 1
+        kept = np.zeros(len(self.samples_), bool)
+        kept[match[same]] = True
+        return ~same, ~kept
+
+    def _candidates(self, centres: np.ndarray, radius: float) -> np.ndarray:
+        """Flat indices of the nodes within ``radius`` voxels (per axis) of ``centres``."""
+        marked = np.zeros(tuple(self.shape_), np.uint8)
+        cells = np.floor((centres - self.origin_) / self.voxel).astype(np.int64)
+        cells = np.clip(cells, 0, self.shape_ - 1)
+        marked[cells[:, 0], cells[:, 1], cells[:, 2]] = 1
+        # a node i is within radius of a point in cell c when c - r <= i <= c + 1 + r
+        reach = int(np.ceil(radius))
+        marked = maximum_filter(marked, size=2 * reach + 2, mode="constant")
+        return np.flatnonzero(marked)
+
+    def _evaluate(self, flat: np.ndarray) -> None:
+        index = np.unravel_index(flat, tuple(self.shape_))
+        nodes = self.origin_ + self.voxel * np.column_stack(index).astype(float)
+        distance = self.tree_.query(nodes, distance_upper_bound=self._far)[0]
+        near = np.isfinite(distance)
+        if not near.any():
+            return
+        values, eighth = imls(nodes[near], self.samples_, self.normals_, self.tree_, self.voxel)
+        where = flat[near]
+        self.values_.flat[where] = values
+        self._eighth.flat[where] = eighth
+        self.mask_.flat[where] = distance[near] <= self.band * self.voxel
+
+    # -- persistence ---------------------------------------------------------------------------
+    def state(self, prefix: str = "") -> tuple[dict, dict[str, np.ndarray]]:
+        """The fitted grid as (meta, arrays named ``prefix`` + ...): the evaluated nodes only,
+        the samples, and the last mesh when one is kept (``mesh_``)."""
+        nodes = np.flatnonzero((self._eighth > 0) | self.mask_ | (self.values_ != self._far))
+        meta = {"params": {"voxel": self.voxel, "band": self.band, "pad": self.pad,
+                           "tolerance": self.tolerance},
+                "reach": self.reach_, "mesh_key": list(getattr(self, "mesh_key_", []))}
+        arrays = {"origin": self.origin_, "shape": self.shape_, "nodes": nodes,
+                  "values": self.values_.flat[nodes], "eighth": self._eighth.flat[nodes],
+                  "mask": self.mask_.flat[nodes], "samples": self.samples_,
+                  "normals": self.normals_}
+        if hasattr(self, "mesh_"):
+            arrays.update(mesh_vertices=self.mesh_.vertices, mesh_faces=self.mesh_.faces)
+        return meta, {prefix + name: np.asarray(value) for name, value in arrays.items()}
+
+    @classmethod
+    def from_state(cls, meta: dict, arrays: dict, prefix: str = "") -> SparseSDF:
+        """Rebuild a grid from `state`: `update` continues from it."""
+        import trimesh
+
+        self = cls(**meta["params"])
+        self.origin_ = np.asarray(arrays[prefix + "origin"], float)
+        self.shape_ = np.asarray(arrays[prefix + "shape"], np.int64)
+        shape = tuple(int(n) for n in self.shape_)
+        nodes = np.asarray(arrays[prefix + "nodes"], np.int64)
+        self.values_ = np.full(shape, self._far)
+        self.values_.flat[nodes] = arrays[prefix + "values"]
+        self._eighth = np.zeros(shape, float)
+        self._eighth.flat[nodes] = arrays[prefix + "eighth"]
+        self.mask_ = np.zeros(shape, bool)
+        self.mask_.flat[nodes] = arrays[prefix + "mask"]
+        self.samples_ = np.ascontiguousarray(arrays[prefix + "samples"], float)
+        self.normals_ = np.ascontiguousarray(arrays[prefix + "normals"], float)
+        self.tree_ = cKDTree(self.samples_)
+        self.reach_ = float(meta["reach"])
+        self.n_evaluated_ = self.n_changed_ = 0
+        self._fitted_with = (self.voxel, self.band, self.pad, self.tolerance)
+        if prefix + "mesh_vertices" in arrays:
+            self.mesh_ = trimesh.Trimesh(arrays[prefix + "mesh_vertices"],
+                                         arrays[prefix + "mesh_faces"], process=False)
+            self.mesh_key_ = tuple(meta["mesh_key"])
+        return self

@@ -1,0 +1,137 @@
+"""A fitted atlas saves and loads: all charts' ONNX maps, the partition and the signs; the loaded
+one re-meshes without torch to the same mesh; a damaged file fails in one line."""
+
+import subprocess
+import sys
+import zipfile
+
+import numpy as np
+import pytest
+import trimesh
+
+from capture.cli import main
+from reconstruct.atlas import AtlasReconstructor
+from reconstruct.errors import InvalidInputError
+from reconstruct.pipeline import SurfaceReconstructor
+
+
+def sphere_cloud(n=1500, sigma=0.01, seed=0):
+    rng = np.random.default_rng(seed)
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    return direction + rng.normal(0, sigma * 2 * np.sqrt(3), (n, 3))
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    model = SurfaceReconstructor(atlas="always").fit(sphere_cloud())
+    model.remesh(lam=2.0)
+    path = model.save(tmp_path_factory.mktemp("atlas") / "sphere.npz")
+    return model, path
+
+
+def same_mesh(a, b):
+    assert len(a.vertices) == len(b.vertices) and len(a.faces) == len(b.faces)
+    np.testing.assert_allclose(a.vertices, b.vertices, atol=1e-9)
+    np.testing.assert_array_equal(a.faces, b.faces)
+
+
+def test_a_loaded_atlas_remeshes_to_the_same_mesh(saved):
+    model, path = saved
+    loaded = SurfaceReconstructor.load(path)
+    assert len(loaded.atlas_.charts_) == len(model.atlas_.charts_) >= 2
+    assert loaded.lam == 2.0 and loaded.atlas_reason_ == model.atlas_reason_
+    assert all(("multidepth", depth, 8) in chart._boundary_cache  # saved: no sampling on load
+               for chart in loaded.atlas_.charts_ for depth in (1, 2, 3))
+    same_mesh(loaded.remesh(), model.mesh_)
+    assert loaded.atlas_._sdf.n_changed_ == 0  # the saved join grid and mesh were used
+    assert loaded.mesh_.is_watertight and loaded.mesh_.euler_number == 2
+    fresh = SurfaceReconstructor.load(path)
+    del fresh.atlas_._sdf  # the join evaluated afresh from the charts' maps gives it too
+    same_mesh(fresh.remesh(), model.mesh_)
+    assert fresh.atlas_._sdf.n_changed_ == len(fresh.atlas_.samples_)
+    same_mesh(loaded.remesh(lam=3.0, depth=3), model.remesh(lam=3.0, depth=3))
+    atlas = AtlasReconstructor.load(path)  # the atlas alone reads the same file
+    np.testing.assert_array_equal(atlas.signs_, model.atlas_.signs_)
+    for before, after in zip(model.atlas_.chart_points_, atlas.chart_points_, strict=True):
+        np.testing.assert_array_equal(before, after)
+    alone = AtlasReconstructor.load(model.atlas_.save(path.with_name("alone.npz")))
+    same_mesh(alone.remesh(), model.mesh_)  # and writes its own
+    model.remesh(lam=2.0)  # as the other tests expect it
+
+
+def test_a_loaded_atlas_needs_no_torch(saved, tmp_path):
+    model, path = saved
+    out = tmp_path / "again.ply"
+    code = (
+        "import sys\n"
+        "from reconstruct.pipeline import SurfaceReconstructor\n"
+        f"mesh = SurfaceReconstructor.load({str(path)!r}).remesh()\n"
+        f"mesh.export({str(out)!r})\n"
+        "print('torch' in sys.modules)"  # never imported (a None entry would break scipy)
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert run.stdout.strip() == "False"
+    again = trimesh.load(out, process=False)
+    np.testing.assert_allclose(again.vertices, model.mesh_.vertices, atol=1e-5)  # PLY floats
+    np.testing.assert_array_equal(again.faces, model.mesh_.faces)
+
+
+def test_the_remesh_command_takes_a_saved_atlas(saved, tmp_path):
+    _, path = saved
+    out = tmp_path / "remeshed.stl"
+    assert main(["--quiet", "remesh", str(path), "-o", str(out), "--lam", "3"]) == 0
+    assert trimesh.load(out, force="mesh").is_watertight
+
+
+def damaged_copies(path, tmp_path):
+    data = path.read_bytes()
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(data[: len(data) // 2])
+    flipped = tmp_path / "flipped.npz"  # one byte changed inside the compressed arrays
+    middle = bytearray(data)
+    middle[len(data) // 2] ^= 0xFF
+    flipped.write_bytes(bytes(middle))
+    missing = tmp_path / "missing.npz"  # a well-formed archive without one chart's map
+    with zipfile.ZipFile(path) as source, zipfile.ZipFile(missing, "w") as target:
+        for item in source.infolist():
+            if item.filename != "chart1_onnx.npy":
+                target.writestr(item, source.read(item.filename))
+    return {"truncated": truncated, "flipped": flipped, "missing": missing}
+
+
+@pytest.mark.parametrize("damage", ["truncated", "flipped", "missing"])
+def test_a_damaged_atlas_file_is_one_line_error(saved, tmp_path, capsys, damage):
+    _, path = saved
+    bad = damaged_copies(path, tmp_path)[damage]
+    for load in (SurfaceReconstructor.load, AtlasReconstructor.load):
+        with pytest.raises(InvalidInputError) as error:
+            load(bad)
+        message = str(error.value)
+        assert "\n" not in message and message.startswith(str(bad))
+        assert "not a ScanStation reconstruction state" in message or "damaged" in message
+    out = tmp_path / "never.ply"
+    assert main(["--quiet", "remesh", str(bad), "-o", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "scanstation: error:" in err and not out.exists()
+
+
+def test_a_one_chart_state_is_not_an_atlas(tmp_path):
+    rng = np.random.default_rng(0)
+    plane = np.c_[rng.uniform(-1, 1, (400, 2)), rng.normal(0, 0.01, 400)]
+    path = SurfaceReconstructor(max_layers=1, max_neurons=6, atlas="never").fit(plane).save(
+        tmp_path / "plane.npz")
+    with pytest.raises(InvalidInputError, match="not an atlas state"):
+        AtlasReconstructor.load(path)
+    assert not hasattr(SurfaceReconstructor.load(path), "atlas_")
+
+
+def test_reconstruct_saves_an_atlas_that_remesh_reads(tmp_path):
+    cloud, out, state = tmp_path / "sphere.xyz", tmp_path / "mesh.ply", tmp_path / "state.npz"
+    np.savetxt(cloud, sphere_cloud())
+    assert main(["--quiet", "reconstruct", str(cloud), "-o", str(out), "--save", str(state)]) == 0
+    assert hasattr(SurfaceReconstructor.load(state), "atlas_")
+    again = tmp_path / "again.ply"
+    assert main(["--quiet", "remesh", str(state), "-o", str(again), "--depth", "3"]) == 0
+    assert trimesh.load(out, force="mesh").is_watertight
+    assert trimesh.load(again, force="mesh").is_watertight

@@ -1,0 +1,98 @@
+"""The join's distance grid: evaluated only near the samples, it equals the dense evaluation;
+re-evaluated only near changed samples, it equals a fresh one (reconstruct.sdf_grid)."""
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from reconstruct.join import implicit_mesh
+from reconstruct.sdf_grid import SparseSDF
+
+
+def dense(samples, normals, voxel, band, origin, shape):
+    """Every node of the box: the IMLS distance within band + 1 voxels, the mask within band."""
+    axes = [origin[i] + voxel * np.arange(shape[i]) for i in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    tree = cKDTree(samples)
+    distance = tree.query(grid, distance_upper_bound=(band + 1) * voxel)[0]
+    near = np.isfinite(distance)
+    values = np.full(len(grid), voxel * (band + 1))
+    d, index = tree.query(grid[near], k=8)
+    offsets = np.einsum("gki,gki->gk", grid[near][:, None, :] - samples[index], normals[index])
+    weights = np.exp(-(d / (1.5 * voxel)) ** 2)
+    values[near] = (weights * offsets).sum(axis=1) / weights.sum(axis=1)
+    return values.reshape(shape), (distance <= band * voxel).reshape(shape)
+
+
+def sphere_samples(subdivisions=3):
+    """An icosphere's vertices, jittered: its symmetry puts many samples at exactly one
+    distance from a node, and which of them is the 8th nearest is then arbitrary."""
+    sphere = trimesh.creation.icosphere(subdivisions)
+    jitter = np.random.default_rng(0).normal(0, 1e-4, sphere.vertices.shape)
+    return np.asarray(sphere.vertices) + jitter, np.asarray(sphere.vertex_normals)
+
+
+def test_the_sparse_grid_equals_the_dense_one():
+    samples, normals = sphere_samples(4)
+    sdf = SparseSDF(voxel=0.05, band=2.0).fit(samples, normals)
+    values, mask = dense(samples, normals, 0.05, 2.0, sdf.origin_, sdf.shape_)
+    assert np.array_equal(sdf.mask_, mask) and mask.sum() > 1000
+    np.testing.assert_array_equal(sdf.values_, values)
+    assert sdf.n_evaluated_ < 0.5 * mask.size  # the inside and the corners are never queried
+    assert np.allclose(sdf.origin_ / 0.05, np.round(sdf.origin_ / 0.05))  # on the lattice
+
+
+def test_an_update_equals_a_fresh_fit_and_touches_only_the_change():
+    samples, normals = sphere_samples()
+    sdf = SparseSDF(voxel=0.1, band=2.0).fit(samples, normals)
+    top = samples[:, 2] > 0.9
+    moved = samples.copy()
+    moved[top] *= 1.05  # a bump on the top
+    kept = np.flatnonzero(samples[:, 0] < 0.95)  # and a few samples gone on one side
+    sdf.update(moved[kept], normals[kept])
+    fresh = SparseSDF(voxel=0.1, band=2.0).fit(moved[kept], normals[kept])
+    assert sdf.n_changed_ == top.sum() + (len(samples) - len(kept)) + top[kept].sum()
+    assert sdf.n_evaluated_ < 0.5 * fresh.n_evaluated_
+    # the two grids lie on one lattice: compare them node by node over the union of both boxes
+    low = np.minimum(sdf.origin_, fresh.origin_)
+    high = np.maximum(sdf.origin_ + 0.1 * (sdf.shape_ - 1),
+                      fresh.origin_ + 0.1 * (fresh.shape_ - 1))
+    size = tuple(np.round((high - low) / 0.1).astype(int) + 1)
+
+    def placed(grid, values, fill):
+        out = np.full(size, fill, dtype=values.dtype)
+        at = np.round((grid.origin_ - low) / 0.1).astype(int)
+        out[tuple(slice(a, a + n) for a, n in zip(at, grid.shape_, strict=True))] = values
+        return out
+
+    np.testing.assert_allclose(placed(sdf, sdf.values_, 0.3), placed(fresh, fresh.values_, 0.3),
+                               atol=1e-12)
+    assert np.array_equal(placed(sdf, sdf.mask_, False), placed(fresh, fresh.mask_, False))
+
+
+def test_the_same_samples_give_back_the_same_mesh_at_once():
+    samples, normals = sphere_samples(4)
+    grid = SparseSDF(voxel=0.08)
+    first = implicit_mesh(samples, normals, voxel=0.08, grid=grid)
+    again = implicit_mesh(samples[::-1], normals[::-1], voxel=0.08, grid=grid)  # reordered
+    assert grid.n_changed_ == 0 and grid.n_evaluated_ == 0
+    assert np.array_equal(first.vertices, again.vertices) and again.is_watertight
+    bumped = samples * np.where(samples[:, 2:] > 0.95, 1.03, 1.0)
+    updated = implicit_mesh(bumped, normals, voxel=0.08, grid=grid)
+    fresh = implicit_mesh(bumped, normals, voxel=0.08)
+    assert 0 < grid.n_changed_ < 0.05 * len(samples)
+    assert len(updated.vertices) == len(fresh.vertices)
+    np.testing.assert_allclose(np.sort(updated.vertices, axis=0), np.sort(fresh.vertices, axis=0),
+                               atol=1e-9)
+
+
+def test_a_saved_grid_continues_where_it_stopped():
+    samples, normals = sphere_samples()
+    sdf = SparseSDF(voxel=0.1, band=2.0).fit(samples, normals)
+    loaded = SparseSDF.from_state(*sdf.state(prefix="join_"), prefix="join_")
+    assert np.array_equal(loaded.values_, sdf.values_) and np.array_equal(loaded.mask_, sdf.mask_)
+    bumped = samples * np.where(samples[:, 2:] > 0.9, 1.05, 1.0)
+    loaded.update(bumped, normals)
+    sdf.update(bumped, normals)
+    assert loaded.n_changed_ == sdf.n_changed_ > 0
+    np.testing.assert_array_equal(loaded.values_, sdf.values_)

@@ -1,0 +1,41 @@
+"""The whole scan as an atlas of charts: when, and the one fit (run on the engine's executor).
+
+`atlas_reason` decides per update from the plan's ``surface`` and the sectors' fits
+(`reconstruct.patches.unfaithful_patch`); `fit_atlas` fits `reconstruct.atlas.AtlasReconstructor`
+on the merged cloud (in a worker process when the engine has a pool: the fitted atlas comes
+back pickled, like a patch fit).
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+
+from reconstruct.atlas import AtlasReconstructor
+from reconstruct.errors import ReconstructionWarning
+from reconstruct.patches import unfaithful_patch
+
+from ..plan import ReconstructionParams
+
+
+def atlas_reason(params: ReconstructionParams, fits: dict, final: bool) -> str | None:
+    """Why the final mesh is the atlas's (one line), or None to keep the sectors.
+
+    fits : {patch name: fitted `SurfaceReconstructor`} of the sectors so far. Live previews
+    (``final`` False) stay the sectors': an atlas takes too long to refit every few views."""
+    if not final or params.surface == "sectors":
+        return None
+    if params.surface == "atlas":
+        return "the plan asks for an atlas"
+    return unfaithful_patch(fits)
+
+
+def fit_atlas(points, params: ReconstructionParams) -> tuple[AtlasReconstructor, float, list]:
+    """(fitted atlas, seconds, warnings said) for the merged (n, 3) points, mm."""
+    started = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", ReconstructionWarning)
+        atlas = AtlasReconstructor(lam=params.lam, depth=params.depth,
+                                   random_state=params.seed).fit(points)
+    said = [str(w.message) for w in caught if issubclass(w.category, ReconstructionWarning)]
+    return atlas, time.perf_counter() - started, said

@@ -24,6 +24,8 @@ recall ≥ 0.8. The simulated scan is in the object's frame: no registration is 
 
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.scan [--views 36] [--workers 2] [--no-batch]
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.scan --object awkward vase --no-batch
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.scan --object torus figurine vase --no-batch \
+        --surface atlas          # what the atlas gives where "auto" keeps the sectors
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from capture.plan import ScanPlan  # noqa: E402
+from capture.plan import SURFACES, ReconstructionParams, ScanPlan  # noqa: E402
 from capture.quality import surface_quality, visible_samples  # noqa: E402
 from capture.replay import replay_runner  # noqa: E402
 from capture.runner import ScanRunner  # noqa: E402
@@ -54,8 +56,9 @@ TARGETS = {"total_s": 60.0, "completeness": 0.95, "denoise": 0.7, "remesh_ms": 2
 OBJECT_TARGETS = {"total_s": 90.0, "precision": 0.9, "recall": 0.8}
 
 
-def scan(out: Path, views: int, workers: int, obj: str) -> ScanRunner:
-    plan = ScanPlan.turn(views, frames_per_view=3, settle_s=0.1)
+def scan(out: Path, views: int, workers: int, obj: str, surface: str = "auto") -> ScanRunner:
+    plan = ScanPlan.turn(views, frames_per_view=3, settle_s=0.1,
+                         reconstruction=ReconstructionParams(surface=surface))
     runner = ScanRunner(plan, turntable_url="sim://turntable?instant=0", object=obj,
                         out_dir=out, workers=workers)
     runner.start()
@@ -142,7 +145,7 @@ def summary(obj: str, result: dict, report, mesh, truth, figures) -> dict:
 
 def bench_object(obj: str, base: Path, args) -> list[dict]:
     """Scan ``obj`` (and its peers); print its table; return its summary rows."""
-    runner = scan(base / "incremental", args.views, args.workers, obj)
+    runner = scan(base / "incremental", args.views, args.workers, obj, args.surface)
     report = json.loads((base / "incremental" / "scan.json").read_text())
     truth = true_surface(runner.station.camera_url)
     final_mesh = runner.engine.mesh  # (before the λ changes below)
@@ -219,6 +222,8 @@ def main() -> None:
     parser.add_argument("--object", nargs="+", default=["vase"],
                         help="built-in objects to scan ('awkward': the five of "
                         "sim.awkward_objects)")
+    parser.add_argument("--surface", choices=SURFACES, default="auto",
+                        help="the engine's final mesh: sectors, atlas, or auto (the default)")
     parser.add_argument("--no-batch", action="store_true", help="skip the batch peer")
     parser.add_argument("--keep", help="keep the scan folders here")
     parser.add_argument("--verbose", action="store_true", help="log the engine's updates")

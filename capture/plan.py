@@ -51,8 +51,9 @@ class ReconstructionParams:
     surface : how the final mesh is made. "sectors": the sectors and cap above (star-shaped
         objects); "atlas": an atlas of charts fitted on the merged cloud
         (`reconstruct.atlas.AtlasReconstructor`: any object); "auto": the sectors, unless one
-        of their fits is unfaithful (`reconstruct.patches.unfaithful_patch`: a mug, a hook, two
-        close sheets), then the atlas. Live previews are the sectors' in every case.
+        of their fits is unfaithful (over 1 % of its points unexplained, or folded:
+        `capture.live.atlas_fit`; a mug, a hook, a figurine's curled ears, two close sheets),
+        then the atlas. Live previews are the sectors' in every case.
     """
 
     lam: float = 1.0

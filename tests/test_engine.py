@@ -225,11 +225,11 @@ def _fit(unexplained, folded=False):
 
 def test_auto_takes_the_atlas_only_when_a_sector_is_unfaithful(fast_params):
     auto = dataclasses.replace(fast_params, surface="auto")
-    good = {"sector 0": _fit(0.0), "sector 1": _fit(0.01)}
+    good = {"sector 0": _fit(0.0), "sector 1": _fit(0.009)}
     assert atlas_reason(auto, good, final=True) is None
-    unexplained = {**good, "sector 2": _fit(0.12)}
+    unexplained = {**good, "sector 2": _fit(0.032)}  # the figurine's worst sector
     reason = atlas_reason(auto, unexplained, final=True)
-    assert reason == "sector 2 leaves 12 % of its points unexplained: not one disc-like surface"
+    assert reason == "sector 2 leaves 3 % of its points unexplained: not one disc-like surface"
     assert "folds over" in atlas_reason(auto, {**good, "cap": _fit(0.0, folded=True)}, True)
     assert atlas_reason(auto, unexplained, final=False) is None  # previews stay sectors
     sectors = dataclasses.replace(fast_params, surface="sectors")

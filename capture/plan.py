@@ -17,6 +17,8 @@ from .volume import Cylinder
 FORMAT = "scanstation-plan/1"
 COMBINE_METHODS = ("median", "mean", "first")
 ON_DEVICE_LOST = ("wait", "fail")
+#: How the engine meshes the whole scan (`ReconstructionParams.surface`).
+SURFACES = ("auto", "sectors", "atlas")
 #: what a station can do: more views than this is a mistake, not a scan (0.1° steps)
 MAX_VIEWS = 3600
 MAX_ANGLE_DEG = 36_000.0  # absolute table angles: up to a hundred turns either way
@@ -46,6 +48,12 @@ class ReconstructionParams:
     min_growth : a patch is first fitted once its coverage grew less than this fraction between
         two updates, and refitted when it grew by this fraction since its fit.
     min_patch_points : patches with fewer points wait for more views.
+    surface : how the final mesh is made. "sectors": the sectors and cap above (star-shaped
+        objects); "atlas": an atlas of charts fitted on the merged cloud
+        (`reconstruct.atlas.AtlasReconstructor`: any object); "auto": the sectors, unless one
+        of their fits is unfaithful (over 1 % of its points unexplained, or folded:
+        `capture.live.atlas_fit`; a mug, a hook, a figurine's curled ears, two close sheets),
+        then the atlas. Live previews are the sectors' in every case.
     """
 
     lam: float = 1.0
@@ -68,8 +76,12 @@ class ReconstructionParams:
     update_every: int = 4
     min_growth: float = 0.1
     min_patch_points: int = 200
+    surface: str = "auto"
 
     def validate(self) -> None:
+        if self.surface not in SURFACES:
+            raise PlanError(f"reconstruction.surface must be one of {SURFACES}, "
+                            f"got {self.surface!r}")
         _number(self, "voxel_mm", 0.05, 100.0)
         _number(self, "lam", 0.0, 1e6)
         _number(self, "cap_overlap_mm", 0.0, 1000.0)

@@ -1,14 +1,19 @@
 """The incremental engine: merged cloud, updates as views stream in, warm starts, determinism,
 re-meshing without retraining, and its saved state."""
 
+import dataclasses
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import trimesh
 from surface_checks import hits_per_ray, side_rays
 
+from capture.live.atlas_fit import atlas_reason
 from capture.live.cloud import VoxelCloud
 from capture.live.engine import EngineError, IncrementalEngine, remesh
 from capture.live.patch_fit import fit_fresh, fit_warm
+from capture.plan import PlanError
 from reconstruct.alignment import align_embedding
 from reconstruct.metrics import distance_to_surface, sample_surface
 
@@ -150,3 +155,90 @@ def test_warm_start_fine_tunes_the_same_network_and_refuses_strangers(stream, fa
     assert warm.mlp_.history_[-1].get("fine_tune")
     far = patch + [0.0, 0.0, 500.0]  # no point in common with the first fit
     assert fit_warm(far, first, fast_params, tolerance=1.0) is None
+
+
+def cup(bottom: bool = False) -> trimesh.Trimesh:
+    """An open 40 mm radius, 60 mm tall cup with a 10 mm wall (its inside: not star-shaped);
+    ``bottom``: with the face it stands on (no view sees it; the atlas caps it on the plate)."""
+    profile = np.array([(40, 0), (40, 60), (30, 60), (30, 8), (0, 8)], dtype=float)
+    if bottom:
+        profile = np.r_[[(0.0, 0.0)], profile]
+    return trimesh.creation.revolve(profile, sections=64)
+
+
+@pytest.fixture(scope="module")
+def cup_engine(fast_params):
+    """The cup's 12 views through an engine whose plan asks for the atlas (live, its thread)."""
+    params = dataclasses.replace(fast_params, surface="atlas")
+    engine, figures = run_engine(views(cup()), params, total_views=12)
+    return engine, figures, params
+
+
+def test_the_final_mesh_of_a_cup_is_an_atlas_with_both_walls(cup_engine):
+    engine, figures, _ = cup_engine
+    assert [f["surface"] for f in figures[:-1]] == ["sectors"] * (len(figures) - 1)  # previews
+    final = figures[-1]
+    assert final["final"] and final["surface"] == "atlas" == engine.surface
+    assert final["charts"] == len(engine.atlas.charts_) >= 2
+    assert final["atlas_reason"] == "the plan asks for an atlas"
+    assert engine.mesh is engine.atlas.mesh_
+    assert engine.atlas.closed_ and engine.mesh.is_watertight and engine.mesh.euler_number == 2
+    truth = cup(bottom=True)
+    assert np.quantile(distance_to_surface(truth, sample_surface(engine.mesh, 4000)), 0.9) < 2.0
+    inside = sample_surface(truth, 4000)
+    inside = inside[np.hypot(inside[:, 0], inside[:, 1]) < 31]  # the inner wall and floor
+    assert np.quantile(distance_to_surface(engine.mesh, inside), 0.8) < 2.0
+    # a ray from the axis halfway up meets the inner wall, then the outer one
+    hits = hits_per_ray(engine.mesh, *side_rays([30.0], np.arange(5, 360, 30.0)))
+    assert np.median(hits) == 2, hits
+
+
+def test_a_replayed_atlas_scan_gives_the_same_mesh(cup_engine):
+    live, figures, params = cup_engine
+    inline, _ = run_engine(views(cup()), params, background=False, total_views=12,
+                           schedule=figures[-1]["schedule"])
+    assert inline.surface == "atlas"
+    np.testing.assert_array_equal(inline.mesh.vertices, live.mesh.vertices)
+    np.testing.assert_array_equal(inline.mesh.faces, live.mesh.faces)
+
+
+def test_an_atlas_remeshes_without_training_and_survives_a_reload(cup_engine, tmp_path):
+    engine, _, _ = cup_engine
+    counts, before = dict(engine.cache.counts), engine.mesh
+    engine.remesh(lam=4.0)
+    assert engine.figures["surface"] == "atlas" and engine.figures["refined"]
+    assert engine.cache.counts == counts  # nothing was fitted again
+    assert engine.mesh is engine.atlas.mesh_ and engine.mesh is not before
+    engine.save(tmp_path)
+    assert (tmp_path / "engine" / "atlas.npz").is_file()
+    assert not list((tmp_path / "engine").glob("patch-*.npz"))  # the atlas is the state
+    path = remesh(tmp_path, lam=4.0)
+    again = trimesh.load(path, process=False)
+    np.testing.assert_allclose(again.vertices, engine.mesh.vertices, atol=1e-5)
+    loaded = IncrementalEngine.load(tmp_path)
+    assert loaded.surface == "atlas" and len(loaded.atlas.charts_) == len(engine.atlas.charts_)
+
+
+def _fit(unexplained, folded=False):
+    """A stand-in patch fit: its unexplained share and a flat or folded two-triangle mesh."""
+    corner = [1, 0, 0.05] if folded else [-1, 0, 0.0]  # back onto the first face, or beside it
+    mesh = trimesh.Trimesh([[0, 0, 0], [0, 1, 0], [1, 0, 0], corner], [[0, 1, 2], [0, 3, 1]],
+                           process=False)
+    return SimpleNamespace(unexplained_=unexplained, mesh_=mesh)
+
+
+def test_auto_takes_the_atlas_only_when_a_sector_is_unfaithful(fast_params):
+    auto = dataclasses.replace(fast_params, surface="auto")
+    good = {"sector 0": _fit(0.0), "sector 1": _fit(0.009)}
+    assert atlas_reason(auto, good, final=True) is None
+    unexplained = {**good, "sector 2": _fit(0.032)}  # the figurine's worst sector
+    reason = atlas_reason(auto, unexplained, final=True)
+    assert reason == "sector 2 leaves 3 % of its points unexplained: not one disc-like surface"
+    assert "folds over" in atlas_reason(auto, {**good, "cap": _fit(0.0, folded=True)}, True)
+    assert atlas_reason(auto, unexplained, final=False) is None  # previews stay sectors
+    sectors = dataclasses.replace(fast_params, surface="sectors")
+    assert atlas_reason(sectors, unexplained, final=True) is None
+    always = dataclasses.replace(fast_params, surface="atlas")
+    assert atlas_reason(always, good, final=True) == "the plan asks for an atlas"
+    with pytest.raises(PlanError, match="reconstruction.surface must be one of"):
+        dataclasses.replace(fast_params, surface="cylinders").validate()

@@ -8,6 +8,13 @@ network: a warm start); the last update polishes every patch on the final points
 order on one worker thread, so the meshes depend only on the views (a replay gives the same
 mesh), never on timing. Each new mesh goes to ``on_mesh``. `remesh` re-meshes every patch
 through its ONNX map with a new λ / depth: no training.
+
+The final mesh of an object the sectors cannot mesh (the plan's ``surface``: "auto" when a
+sector's fit is unfaithful — a mug's inside, a handle, an overhang — or "atlas") is an atlas of
+charts fitted on the merged cloud (`reconstruct.atlas.AtlasReconstructor`, `atlas_fit`); the
+live previews stay the sectors' (an atlas takes too long to refit every few views), and the
+sectors' final polish is skipped when their earlier fits already ask for the atlas. `remesh`
+then re-meshes the atlas's charts through their ONNX maps and joins them again.
 """
 
 from __future__ import annotations
@@ -23,10 +30,12 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from reconstruct.atlas import AtlasReconstructor
 from reconstruct.pipeline import SurfaceReconstructor
 
 from ..executors import make_executor
 from ..plan import ReconstructionParams
+from .atlas_fit import atlas_reason, fit_atlas
 from .cloud import VoxelCloud
 from .patch_cache import PatchCache, PatchFit
 from .patches import LivePatches
@@ -34,6 +43,7 @@ from .patches import LivePatches
 log = logging.getLogger(__name__)
 
 STATE_DIR = "engine"
+ATLAS_FILE = "atlas.npz"  # in STATE_DIR, when the final mesh is an atlas
 _STOP = object()
 
 
@@ -66,6 +76,8 @@ class IncrementalEngine:
         an update still queued when a newer one arrives is skipped, so the engine never lags
         more than one update behind the turntable.
     Attributes: ``mesh`` (trimesh.Trimesh or None), ``version`` (0 until the first mesh),
+    ``surface`` ("sectors" or "atlas": how ``mesh`` was made), ``atlas`` (the fitted
+    `AtlasReconstructor` when the final mesh is the atlas's, else None),
     ``figures`` (dict of the last update), ``cloud`` (`VoxelCloud`), ``views`` (count),
     ``view_points`` (each view's (n, 3) points as added, for the quality report),
     ``schedule_run`` (view counts of the updates run so far, the final one excluded).
@@ -86,6 +98,8 @@ class IncrementalEngine:
         self.cache = PatchCache(params)
         self.patches = LivePatches(self.cache)
         self.mesh: trimesh.Trimesh | None = None
+        self.surface = "sectors"
+        self.atlas = None
         self.version = 0
         self.figures: dict = {}
         self.views = 0
@@ -192,14 +206,25 @@ class IncrementalEngine:
         if not final:
             self.schedule_run.append(views)
         before = dict(self.cache.counts)
-        patches = self.patches.update(points, final=final, executor=self._executor)
+        # The sectors' earlier fits may already ask for the atlas: then no final polish.
+        reason = atlas_reason(self.params, self._sector_models(), final)
+        patches = None
+        if reason is None:
+            patches = self.patches.update(points, final=final, executor=self._executor)
+            reason = atlas_reason(self.params, self._sector_models(), final)
+        if reason is not None and self._run_atlas(points, views, reason, started):
+            return
+        if patches is None:  # the atlas failed: the sectors after all
+            patches = self.patches.update(points, final=final, executor=self._executor)
         if len(patches.mesh.faces) == 0:
             log.info("update after %d views: no patch is ready yet", views)
             return
         counts = {k: v - before[k] for k, v in self.cache.counts.items()}
+        self.surface, self.atlas = "sectors", None
         self._publish(patches.mesh, points, {
             "views": views,
             "final": final,
+            "surface": "sectors",
             "points": len(points),
             "seconds": time.perf_counter() - started,
             "patches": len(patches.names) - len(patches.waiting),
@@ -207,6 +232,40 @@ class IncrementalEngine:
             **{f"patches_{k}": v for k, v in counts.items()},
             "schedule": list(self.schedule_run),
         })
+
+    def _sector_models(self) -> dict:
+        return {name: fit.model for name, fit in self.cache.fits.items()}
+
+    def _run_atlas(self, points, views: int, reason: str, started: float) -> bool:
+        """Fit the atlas on the final (m, 3) points and publish its mesh; False if it failed."""
+        log.info("final mesh: an atlas of charts (%s)", reason)
+        try:
+            if self._executor is None:
+                atlas, seconds, said = fit_atlas(points, self.params)
+            else:
+                atlas, seconds, said = self._executor.submit(fit_atlas, points,
+                                                             self.params).result()
+        except Exception as exc:  # the sectors' mesh is better than none
+            log.warning("the atlas failed (%s: %s); the final mesh is the sectors'",
+                        type(exc).__name__, exc)
+            return False
+        for line in said:
+            log.warning("atlas: %s", line)
+        self.surface, self.atlas = "atlas", atlas
+        self._publish(atlas.mesh_, points, {
+            "views": views,
+            "final": True,
+            "surface": "atlas",
+            "atlas_reason": reason,
+            "points": len(points),
+            "seconds": time.perf_counter() - started,
+            "atlas_s": seconds,
+            "charts": len(atlas.charts_),
+            "watertight": bool(atlas.watertight_),
+            "euler": int(atlas.euler_),
+            "schedule": list(self.schedule_run),
+        })
+        return True
 
     def _publish(self, mesh, points, figures: dict) -> None:
         with self._lock:
@@ -229,26 +288,32 @@ class IncrementalEngine:
         lam = self.params.lam if lam is None else float(lam)
         depth = self.params.depth if depth is None else int(depth)
         started = time.perf_counter()
-        patches = self.patches.remesh(self._fitted_points, lam, depth)
-        self._publish(patches.mesh, self._fitted_points, {
+        if self.surface == "atlas":
+            mesh = self.atlas.remesh(lam=lam, depth=depth)
+        else:
+            mesh = self.patches.remesh(self._fitted_points, lam, depth).mesh
+        self._publish(mesh, self._fitted_points, {
             "views": self.figures.get("views", self.views), "final": True, "lam": lam,
-            "depth": depth, "points": len(self._fitted_points), "refined": True,
-            "seconds": time.perf_counter() - started,
+            "depth": depth, "surface": self.surface, "points": len(self._fitted_points),
+            "refined": True, "seconds": time.perf_counter() - started,
         })
         return self.version
 
     def save(self, directory) -> Path:
-        """Write the cloud and every patch fit (re-meshable) to ``directory``/engine."""
+        """Write the cloud and every patch fit, or the atlas (re-meshable), to
+        ``directory``/engine."""
         self.wait()
         target = Path(directory) / STATE_DIR
         target.mkdir(parents=True, exist_ok=True)
-        names = sorted(self.cache.fits)
+        names = sorted(self.cache.fits) if self.surface == "sectors" else []
         for i, name in enumerate(names):
             self.cache.fits[name].model.save(target / f"patch-{i}.npz")
+        if self.surface == "atlas":
+            self.atlas.save(target / ATLAS_FILE)
         np.save(target / "fitted_points.npy", self._fitted_points)
         (target / "engine.json").write_text(json.dumps({
-            "params": self.params.__dict__, "patches": names, "version": self.version,
-            "figures": self.figures,
+            "params": self.params.__dict__, "patches": names, "surface": self.surface,
+            "version": self.version, "figures": self.figures,
         }, indent=1))
         return target
 
@@ -265,6 +330,9 @@ class IncrementalEngine:
         for i, name in enumerate(meta["patches"]):
             model = SurfaceReconstructor.load(source / f"patch-{i}.npz")
             engine.cache.fits[name] = PatchFit(model, "", 0)
+        if meta.get("surface") == "atlas":
+            engine.surface, engine.atlas = "atlas", AtlasReconstructor.load(
+                source / ATLAS_FILE)
         engine._fitted_points = points
         engine.version = int(meta["version"])
         engine.figures = dict(meta.get("figures", {}))

@@ -11,10 +11,10 @@ const TOKEN_KEY = "scanstation-token";
 const ACTIVE = new Set(["queued", "starting", "idle", "running", "paused", "stopping", "processing"]);
 const ENDED = new Set(["done", "failed", "interrupted"]);
 const sleep = (ms) => new Promise((resolve) => setTimeout(resolve, ms));
-// "quick preview": one small hidden layer per patch, few epochs, three sectors (seconds, not
-// minutes; good enough to check the framing and coverage before a full scan)
+// "quick preview": one small hidden layer per patch, few epochs, three sectors and never an atlas
+// (seconds, not minutes; good enough to check the framing and coverage before a full scan)
 const PREVIEW = { max_layers: 1, max_neurons: 8, max_epochs: 5, final_epochs: 20, n_sectors: 3,
-                  update_every: 0, min_patch_points: 100 };
+                  update_every: 0, min_patch_points: 100, surface: "sectors" };
 
 let selected = null;      // id of the scan shown
 let current = null;       // its last known JSON

@@ -28,6 +28,7 @@ import logging
 import os
 import time
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -62,6 +63,9 @@ VOTE_LIMIT = 0.5
 UNCHARTED = 1.0
 #: The cloud is closed when charts facing clearly out hold this share of the join's samples.
 CLOSED_SHARE = 0.5
+#: Charts re-meshed at once, in threads (ONNX Runtime, GEOS and qhull release the GIL): torus
+#: 22k, 37 charts, 2 cores: 266 -> 187 ms.
+REMESH_THREADS = 2
 
 
 def fold_share(mesh: trimesh.Trimesh) -> float:
@@ -227,15 +231,16 @@ class AtlasReconstructor(BaseEstimator):
             samples.append(s)
             normals.append(n)
         samples, normals = np.concatenate(samples), np.concatenate(normals)
-        uncharted = self._uncharted(samples) if self.closed_ else None
+        uncharted = (lambda: self._uncharted(samples)) if self.closed_ else None
         self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim,
                                    closed=self.closed_, seal=self.seal_, uncharted=uncharted,
                                    ground=self.ground,
                                    grid=self.__dict__.setdefault("_sdf", SparseSDF(voxel)))
         self.samples_, self.normals_ = samples, normals
-        self.watertight_ = bool(self.mesh_.is_watertight)
-        self.winding_consistent_ = bool(self.mesh_.is_winding_consistent)
-        self.euler_ = int(self.mesh_.euler_number)
+        if decide or not (self._sdf.hit_ and hasattr(self, "euler_")):  # else the same mesh
+            self.watertight_ = bool(self.mesh_.is_watertight)
+            self.winding_consistent_ = bool(self.mesh_.is_winding_consistent)
+            self.euler_ = int(self.mesh_.euler_number)
         if self.closed_ and not self.watertight_:
             warnings.warn("the cloud looks closed (its charts face out of one volume) but the "
                           "joined mesh is not watertight", ReconstructionWarning, stacklevel=3)
@@ -293,8 +298,8 @@ class AtlasReconstructor(BaseEstimator):
         self._pin_chart_grids()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", ReconstructionWarning)
-            for chart in self.charts_:
-                chart.remesh(**params)
+            with ThreadPoolExecutor(min(REMESH_THREADS, len(self.charts_))) as pool:
+                list(pool.map(lambda chart: chart.remesh(**params), self.charts_))
         said = [w for w in caught if issubclass(w.category, ReconstructionWarning)]
         if said:  # one line for the atlas, not one per chart
             warnings.warn(f"{len(said)} of {len(self.charts_)} charts: {said[0].message}",

@@ -242,11 +242,12 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     between the samples narrower than twice this are capped;
     uncharted : (p, 3) data points no chart's samples represent (a junction the charts left
     out): in a closed join they occupy the grid like samples, so the cap across their gap
-    passes by them;
+    passes by them (or a callable giving them, called only when the mesh is built);
     ground : in a closed join, the height of a plane the object stands on (`exterior_grid`):
     the unseen underside is capped on it;
     grid : a `SparseSDF` kept between calls: the distance is re-evaluated only near the samples
-    that changed since, and the same samples give back the same mesh at once."""
+    that changed since, and the same samples give back the same mesh at once (then its
+    ``hit_`` is True)."""
     from skimage.measure import marching_cubes  # scikit-image: only on the joining path
 
     samples = np.asarray(samples, float)
@@ -255,7 +256,9 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     sdf.voxel, sdf.band = voxel, band
     sdf.follow(samples, normals)
     key = (trim, min_share, hole, closed, seal, ground)
-    if data is None and sdf.n_changed_ == 0 and getattr(sdf, "mesh_key_", None) == key:
+    sdf.hit_ = bool(data is None and sdf.n_changed_ == 0
+                    and getattr(sdf, "mesh_key_", None) == key)
+    if sdf.hit_:
         return sdf.mesh_.copy(include_cache=True)  # the same samples: the same mesh
     tree = sdf.tree_
     if closed:
@@ -263,7 +266,8 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
 
         seal = band if seal is None else seal
         origin, shape, exterior, free = exterior_grid(samples, voxel, seal, normals,
-                                                      extra=uncharted, ground=ground)
+                                                      extra=uncharted() if callable(uncharted)
+                                                      else uncharted, ground=ground)
         axes = [origin[i] + voxel * np.arange(shape[i]) for i in range(3)]
         nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
         near = ~free.ravel()

@@ -95,9 +95,9 @@ class AtlasReconstructor(BaseEstimator):
     shell : in a closed cloud, a chart seen from outside on both sides (a part thinner than the
         noise, such as a curled ear, fitted as one sheet) is joined as a closed shell this many
         voxels thick on either side (`join.thin_shell`).
-    ground : the height (z) of a plane the object stands on, unseen from below (a turntable
-        scan: `reconstruct.join.exterior_grid`); a closed cloud's underside is capped on it.
-        None: no such plane.
+    closed : None: join the charts as the boundary of a volume when their exterior votes say
+        the cloud is closed, else as an open surface; False: always open (a scan with unseen
+        parts, where a closed join caps guesses: `capture.live.atlas_fit`); True: always closed.
     graph : an unfitted `SheetGraph` (its parameters); None: the defaults.
     random_state : seed (same seed, same mesh).
 
@@ -114,7 +114,7 @@ class AtlasReconstructor(BaseEstimator):
     def __init__(self, chart_size: int = 2500, overlap: float = 4.0, lam: float = 1.0,
                  depth: int = 2, reuse_layers: bool = True, max_splits: int = 2,
                  voxel: float = 0.5, band: float = 3.0, trim: float = 1.0, reach: float = 1.0,
-                 shell: float = 1.0, ground: float | None = None,
+                 shell: float = 1.0, closed: bool | None = None,
                  graph: SheetGraph | None = None, random_state: int | None = 0):
         self.chart_size = chart_size
         self.overlap = overlap
@@ -127,7 +127,7 @@ class AtlasReconstructor(BaseEstimator):
         self.trim = trim
         self.reach = reach
         self.shell = shell
-        self.ground = ground
+        self.closed = closed
         self.graph = graph
         self.random_state = random_state
 
@@ -234,7 +234,6 @@ class AtlasReconstructor(BaseEstimator):
         uncharted = (lambda: self._uncharted(samples)) if self.closed_ else None
         self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim,
                                    closed=self.closed_, seal=self.seal_, uncharted=uncharted,
-                                   ground=self.ground,
                                    grid=self.__dict__.setdefault("_sdf", SparseSDF(voxel)))
         self.samples_, self.normals_ = samples, normals
         if decide or not (self._sdf.hit_ and hasattr(self, "euler_")):  # else the same mesh
@@ -256,11 +255,12 @@ class AtlasReconstructor(BaseEstimator):
         chart looks two-sided: a wider seal is tried too."""
         sizes = np.array([len(k) for k in kept], float)
         for seal in (self.band, 2 * self.band):
-            votes, two_sided = exterior_votes(chart_samples_, chart_normals, voxel, band=seal,
-                                              ground=self.ground)
+            votes, two_sided = exterior_votes(chart_samples_, chart_normals, voxel, band=seal)
             outward = np.abs(votes) >= VOTE_LIMIT
             self.closed_ = bool(sizes[outward].sum() >= CLOSED_SHARE * max(sizes.sum(), 1.0))
-            if self.closed_:
+            if self.closed is not None:
+                self.closed_ = bool(self.closed)
+            if self.closed_ or self.closed is not None:
                 break
         self.votes_, self.seal_ = votes, seal
         self.shells_ = np.zeros(len(kept), bool)

@@ -116,7 +116,7 @@ def _grid(samples: np.ndarray, voxel: float, pad: float):
 
 
 def exterior_grid(samples, voxel: float, band: float = 3.0, normals=None, pad=None,
-                  extra=None, ground: float | None = None):
+                  extra=None):
     """Which nodes of a grid round ``samples`` (m, 3) lie outside the sampled surface.
 
     A node farther than ``band`` voxels from every sample is *free*; the free nodes connected
@@ -124,11 +124,8 @@ def exterior_grid(samples, voxel: float, band: float = 3.0, normals=None, pad=No
     closed object, or a concave nook the band closed off) is exterior when the nearest
     samples' tangent planes, oriented by ``normals`` (m, 3), put most of its nodes in front
     (without normals: never). ``extra`` (p, 3): points that occupy the grid like samples
-    (data no chart represents), outside the grid ignored. ``ground``: the height (z) of a
-    plane the object stands on, which no view sees under it (a turntable scan); the plane
-    occupies the grid under the object's footprint (its samples within ``2 band`` voxels of
-    the plane, gaps of ``2 band`` closed, holes filled), so the unseen underside is closed
-    there. Returns origin (3,), shape (3,), exterior and free, bool arrays of ``shape``."""
+    (data no chart represents), outside the grid ignored. Returns origin (3,), shape (3,),
+    exterior and free, bool arrays of ``shape``."""
     from scipy import ndimage
 
     samples = np.asarray(samples, float)
@@ -138,9 +135,6 @@ def exterior_grid(samples, voxel: float, band: float = 3.0, normals=None, pad=No
     if extra is not None and len(extra):
         nodes = np.floor((np.asarray(extra, float) - origin) / voxel + 0.5).astype(int)
         occupied[tuple(nodes[np.all((nodes >= 0) & (nodes < shape), axis=1)].T)] = True
-    if ground is not None:
-        occupied[:, :, _level(ground, origin, voxel, shape)] |= footprint(
-            samples, ground, voxel, band, origin, shape)
     free = ndimage.distance_transform_edt(~occupied) > band
     pieces, _ = ndimage.label(free)
     faces = [pieces[0], pieces[-1], pieces[:, 0], pieces[:, -1], pieces[:, :, 0],
@@ -161,31 +155,7 @@ def exterior_grid(samples, voxel: float, band: float = 3.0, normals=None, pad=No
     return origin, shape, np.isin(pieces, outside) & free, free
 
 
-def _level(z: float, origin, voxel: float, shape) -> int:
-    """Index along the grid's z axis of the node layer nearest height ``z``."""
-    return int(np.clip(np.floor((z - origin[2]) / voxel + 0.5), 0, shape[2] - 1))
-
-
-def footprint(samples, ground: float, voxel: float, band: float, origin, shape) -> np.ndarray:
-    """(shape[0], shape[1]) bool: grid columns under an object standing on the plane
-    z = ``ground``: its samples (m, 3) within ``2 band`` voxels of the plane, seen from above,
-    gaps of up to ``2 band`` voxels closed, enclosed holes filled (a cup's floor)."""
-    from scipy import ndimage
-
-    low = samples[samples[:, 2] <= ground + 2 * band * voxel]
-    foot = np.zeros(tuple(shape[:2]), bool)
-    if len(low):
-        cells = np.clip(np.floor((low[:, :2] - origin[:2]) / voxel + 0.5).astype(int), 0,
-                        np.asarray(shape[:2]) - 1)
-        foot[tuple(cells.T)] = True
-        reach = max(int(np.ceil(band)), 1)
-        foot = ndimage.binary_closing(np.pad(foot, reach), iterations=reach)[reach:-reach,
-                                                                             reach:-reach]
-    return ndimage.binary_fill_holes(foot)
-
-
-def exterior_votes(chart_samples_, chart_normals, voxel: float, band: float = 3.0,
-                   ground: float | None = None):
+def exterior_votes(chart_samples_, chart_normals, voxel: float, band: float = 3.0):
     """Which side of each chart is outside the object.
 
     chart_samples_, chart_normals : c arrays (m_i, 3). A probe ``band + 1.5`` voxels along
@@ -193,10 +163,9 @@ def exterior_votes(chart_samples_, chart_normals, voxel: float, band: float = 3.
     Returns votes (c,) in [−1, 1], the charts' mean of +1 when only the front probe is
     outside (the normal points out), −1 when only the back one is, 0 otherwise; and
     two_sided (c,), the share of samples with both probes outside (a sheet seen from both
-    sides: an open surface, or a part thinner than the noise charted once). ``ground``: as
-    in `exterior_grid`."""
+    sides: an open surface, or a part thinner than the noise charted once)."""
     everything = np.concatenate([s for s in chart_samples_ if len(s)])
-    origin, shape, exterior, _ = exterior_grid(everything, voxel, band, ground=ground)
+    origin, shape, exterior, _ = exterior_grid(everything, voxel, band)
     step = (band + 1.5) * voxel
 
     def outside(p):
@@ -223,8 +192,7 @@ def thin_shell(samples, normals, half: float):
 def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float = 1.5,
                   min_share: float = 0.005, data=None, hole: float = 12.0,
                   closed: bool = False, seal: float | None = None,
-                  uncharted=None, ground: float | None = None,
-                  grid: SparseSDF | None = None) -> trimesh.Trimesh:
+                  uncharted=None, grid: SparseSDF | None = None) -> trimesh.Trimesh:
     """One mesh through oriented samples (m, 3) with unit normals (m, 3).
 
     voxel : grid spacing; band : the surface is sought within ``band`` voxels of a sample;
@@ -243,8 +211,6 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     uncharted : (p, 3) data points no chart's samples represent (a junction the charts left
     out): in a closed join they occupy the grid like samples, so the cap across their gap
     passes by them (or a callable giving them, called only when the mesh is built);
-    ground : in a closed join, the height of a plane the object stands on (`exterior_grid`):
-    the unseen underside is capped on it;
     grid : a `SparseSDF` kept between calls: the distance is re-evaluated only near the samples
     that changed since, and the same samples give back the same mesh at once (then its
     ``hit_`` is True)."""
@@ -255,7 +221,7 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     sdf = SparseSDF(voxel, band) if grid is None else grid
     sdf.voxel, sdf.band = voxel, band
     sdf.follow(samples, normals)
-    key = (trim, min_share, hole, closed, seal, ground)
+    key = (trim, min_share, hole, closed, seal)
     sdf.hit_ = bool(data is None and sdf.n_changed_ == 0
                     and getattr(sdf, "mesh_key_", None) == key)
     if sdf.hit_:
@@ -267,7 +233,7 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         seal = band if seal is None else seal
         origin, shape, exterior, free = exterior_grid(samples, voxel, seal, normals,
                                                       extra=uncharted() if callable(uncharted)
-                                                      else uncharted, ground=ground)
+                                                      else uncharted)
         axes = [origin[i] + voxel * np.arange(shape[i]) for i in range(3)]
         nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
         near = ~free.ravel()
@@ -287,13 +253,6 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         blend = np.clip(d[:, 0] / voxel - _TRUSTED, 0.0, 1.0)
         values[near] = (1 - blend) * values[near] + blend * closing
         values = values.reshape(shape)
-        if ground is not None:  # the cap on the plane: its signed distance under the object
-            heights = origin[2] + voxel * np.arange(shape[2])
-            low = heights < ground + voxel
-            plane = np.clip(ground - heights[low], -(band + 1) * voxel, (band + 1) * voxel)
-            values[:, :, low] = np.where(
-                footprint(samples, ground, voxel, seal, origin, shape)[:, :, None], plane,
-                values[:, :, low])
         if _OPEN:
             values = ndimage.grey_opening(values, size=(_OPEN,) * 3)
         if _SMOOTH:

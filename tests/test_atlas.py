@@ -152,3 +152,15 @@ def test_a_closed_cloud_whose_join_is_not_watertight_is_warned_about(sphere_atla
         assert not atlas.watertight_
     atlas._join()
     assert atlas.watertight_
+
+
+def test_the_join_can_be_told_to_stay_open(sphere_atlas):
+    _, atlas = sphere_atlas
+    try:
+        atlas.set_params(closed=False)
+        atlas._join()
+        assert not atlas.closed_ and not atlas.shells_.any()
+    finally:
+        atlas.set_params(closed=None)
+        atlas._join()
+    assert atlas.closed_ and atlas.watertight_

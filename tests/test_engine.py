@@ -157,12 +157,9 @@ def test_warm_start_fine_tunes_the_same_network_and_refuses_strangers(stream, fa
     assert fit_warm(far, first, fast_params, tolerance=1.0) is None
 
 
-def cup(bottom: bool = False) -> trimesh.Trimesh:
-    """An open 40 mm radius, 60 mm tall cup with a 10 mm wall (its inside: not star-shaped);
-    ``bottom``: with the face it stands on (no view sees it; the atlas caps it on the plate)."""
+def cup() -> trimesh.Trimesh:
+    """An open 40 mm radius, 60 mm tall cup with a 10 mm wall (its inside: not star-shaped)."""
     profile = np.array([(40, 0), (40, 60), (30, 60), (30, 8), (0, 8)], dtype=float)
-    if bottom:
-        profile = np.r_[[(0.0, 0.0)], profile]
     return trimesh.creation.revolve(profile, sections=64)
 
 
@@ -182,8 +179,8 @@ def test_the_final_mesh_of_a_cup_is_an_atlas_with_both_walls(cup_engine):
     assert final["charts"] == len(engine.atlas.charts_) >= 2
     assert final["atlas_reason"] == "the plan asks for an atlas"
     assert engine.mesh is engine.atlas.mesh_
-    assert engine.atlas.closed_ and engine.mesh.is_watertight and engine.mesh.euler_number == 2
-    truth = cup(bottom=True)
+    assert not engine.atlas.closed_  # a scan's atlas is joined open (nothing sees under it)
+    truth = cup()
     assert np.quantile(distance_to_surface(truth, sample_surface(engine.mesh, 4000)), 0.9) < 2.0
     inside = sample_surface(truth, 4000)
     inside = inside[np.hypot(inside[:, 0], inside[:, 1]) < 31]  # the inner wall and floor

@@ -87,36 +87,3 @@ def test_data_no_chart_represents_keeps_a_closed_join_whole():
     assert whole.is_watertight and len(whole.split(only_watertight=False)) == 1
     assert whole.euler_number == 0
 
-
-def cup_samples(n: int = 8000, seed: int = 3):
-    """Samples (m, 3) and outward normals of a cup standing on z = 0 as a turntable's views see
-    it: outer wall (radius 1, height 1.2), rim, inner wall (0.75) down to its floor at 0.3;
-    nothing under it."""
-    rng = np.random.default_rng(seed)
-    part = rng.integers(0, 4, n)
-    angle = rng.uniform(0, 2 * np.pi, n)
-    radial = np.c_[np.cos(angle), np.sin(angle), np.zeros(n)]
-    radius = np.select([part == 0, part == 1, part == 2],
-                       [1.0, rng.uniform(0.75, 1.0, n), 0.75], np.sqrt(rng.uniform(0, 0.5625, n)))
-    height = np.select([part == 0, part == 1, part == 2],
-                       [rng.uniform(0, 1.2, n), np.full(n, 1.2), rng.uniform(0.3, 1.2, n)],
-                       np.full(n, 0.3))
-    samples = radial * radius[:, None] + np.c_[0 * angle, 0 * angle, height]
-    up = np.tile([0.0, 0.0, 1.0], (n, 1))
-    normals = np.select([part[:, None] == 0, part[:, None] == 2], [radial, -radial], up)
-    return samples, normals
-
-
-def test_the_ground_caps_the_unseen_underside_on_its_plane():
-    samples, normals = cup_samples()
-    voxel = 0.05
-    mesh = implicit_mesh(samples, normals, voxel, closed=True, ground=0.0)
-    assert mesh.is_watertight and mesh.euler_number == 2 and mesh.volume > 0
-    assert abs(mesh.vertices[:, 2].min()) < 0.5 * voxel  # the cap on the plane
-    # one layer under the floor: a ray up the axis meets the base's bottom, then the floor
-    hits = mesh.ray.intersects_location([[0.0, 0.0, -1.0]], [[0.0, 0.0, 1.0]])[0]
-    assert np.allclose(np.sort(hits[:, 2]), [0.0, 0.3], atol=1.5 * voxel)
-    # without the plane the outside reaches in under the floor: the floor is no wall
-    votes, two_sided = exterior_votes([samples], [normals], voxel)
-    grounded, _ = exterior_votes([samples], [normals], voxel, ground=0.0)
-    assert grounded[0] > votes[0]

@@ -32,6 +32,7 @@ import statistics
 import time
 import warnings
 from pathlib import Path
+from queue import Empty
 
 import numpy as np
 import trimesh
@@ -256,9 +257,15 @@ def _end_to_end(name, n, seed, queue):
         write_mesh(model.mesh_, out)
         seconds = time.perf_counter() - started
     stages = dict(getattr(model, "timings_", {}), read=read, write=time.perf_counter() - written)
+    atlas = getattr(model, "atlas_", None)
+    if atlas is not None:  # the one chart spanned holes or folded: an atlas of charts (the
+        # stages are the one chart's; the total includes the atlas)
+        method, layers = f"atlas of {len(atlas.charts_)} charts", atlas.charts_[0].hidden_layers_
+    else:
+        method, layers = model.embedding_method_, model.hidden_layers_
     queue.put({"shape": name, "n": n, "seconds": seconds, "peak_gb": peak_memory_gb(),
-               "faces": len(model.mesh_.faces), "method": model.embedding_method_,
-               "layers": model.hidden_layers_, "stages": stages})
+               "faces": len(model.mesh_.faces), "method": method, "layers": layers,
+               "stages": stages})
 
 
 def end_to_end_bench(sizes, shapes, seed=0) -> list[dict]:
@@ -269,7 +276,14 @@ def end_to_end_bench(sizes, shapes, seed=0) -> list[dict]:
             queue = context.Queue()
             process = context.Process(target=_end_to_end, args=(name, n, seed, queue))
             process.start()
-            rows.append(queue.get())
+            while True:  # a crashed case says so instead of waiting for ever
+                try:
+                    rows.append(queue.get(timeout=5))
+                    break
+                except Empty:
+                    if not process.is_alive():
+                        raise RuntimeError(f"end to end {name} n={n} failed "
+                                           f"(exit code {process.exitcode})") from None
             process.join()
             print(f"  end to end {name} n={n} done", flush=True)
     return rows

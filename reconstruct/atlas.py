@@ -50,8 +50,9 @@ log = logging.getLogger(__name__)
 ATLAS_FORMAT = "scanstation-atlas/1"
 #: Parameters of the fit only (a loaded atlas re-meshes, it does not fit): not saved.
 _FIT_ONLY_PARAMS = ("graph",)
-#: Boundary depths whose samples `state` computes and saves for every chart, so a loaded atlas
-#: re-meshes to another of them without sampling its boundaries first (~1 s for 35 charts).
+#: Boundary depths whose samples `fit` computes (and `state` saves) for every chart, so a
+#: fitted or loaded atlas re-meshes to another of them without sampling its boundaries first
+#: (~1 s for 35 charts: a first depth change took 793 ms against 277 for a new λ).
 SAVED_DEPTHS = (1, 2, 3)
 
 #: Largest share of a chart mesh's adjacent face pairs folded back onto each other (> 120°).
@@ -170,6 +171,7 @@ class AtlasReconstructor(BaseEstimator):
         self._chart_ids = order
         self.timings_["fits"] = time.perf_counter() - started - self.timings_["charts"]
         self._pin_chart_grids()  # the charts' grids on their lattices: re-meshing is incremental
+        self._sample_depths()  # and a new depth (1-3) needs no boundary sampling
         self.signs_ = orient_charts([c.mesh_ for c in self.charts_], self.chart_points_, points)
         self._join()
         self.timings_["total"] = time.perf_counter() - started
@@ -322,6 +324,18 @@ class AtlasReconstructor(BaseEstimator):
                     chart.remesh(grid_spacing=default_spacing(chart.outline_,
                                                               len(chart.embedding_)))
 
+    def _sample_depths(self) -> None:
+        """Sample every chart's boundary at each of `SAVED_DEPTHS` (cached in the chart, saved
+        with its state): a re-mesh to one of those depths need not sample first."""
+        for chart in self.charts_:
+            depth = chart.depth
+            try:
+                for saved_depth in SAVED_DEPTHS:
+                    chart.depth = saved_depth
+                    chart._boundary_points()
+            finally:
+                chart.depth = depth
+
     # -- persistence ---------------------------------------------------------------------------
     def state(self) -> tuple[dict, dict[str, np.ndarray]]:
         """The fitted state as (meta, arrays): every chart's `SurfaceReconstructor.state`
@@ -333,15 +347,9 @@ class AtlasReconstructor(BaseEstimator):
         if not hasattr(self, "charts_"):
             raise NotFittedError("nothing to save: fit() the atlas first")
         self._pin_chart_grids()
+        self._sample_depths()
         charts, arrays = [], {}
         for index, chart in enumerate(self.charts_):
-            depth = chart.depth
-            try:
-                for saved_depth in SAVED_DEPTHS:
-                    chart.depth = saved_depth
-                    chart._boundary_points()  # cached in the chart, saved with its state
-            finally:
-                chart.depth = depth
             meta, chart_arrays = chart.state(prefix=f"chart{index}_")
             charts.append(meta)
             arrays.update(chart_arrays)

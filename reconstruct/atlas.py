@@ -37,7 +37,7 @@ from sklearn.base import BaseEstimator
 
 from .charts import ChartDecomposition
 from .errors import InvalidInputError, NotFittedError, ReconstructionWarning
-from .faithfulness import UNEXPLAINED_LIMIT
+from .faithfulness import FOLD_LIMIT, UNEXPLAINED_LIMIT, fold_share
 from .io import one_line, read_state, write_state
 from .join import chart_samples, exterior_votes, implicit_mesh, orient_charts, thin_shell
 from .meshing import default_spacing
@@ -55,9 +55,6 @@ _FIT_ONLY_PARAMS = ("graph",)
 #: (~1 s for 35 charts: a first depth change took 793 ms against 277 for a new λ).
 SAVED_DEPTHS = (1, 2, 3)
 
-#: Largest share of a chart mesh's adjacent face pairs folded back onto each other (> 120°).
-FOLD_LIMIT = 0.02
-_FOLD_ANGLE = np.radians(120)
 #: A chart faces out of the object when its exterior vote (`join.exterior_votes`) is this clear.
 VOTE_LIMIT = 0.5
 #: Input points farther than this (median spacings) from every joined sample are uncharted.
@@ -67,12 +64,6 @@ CLOSED_SHARE = 0.5
 #: Charts re-meshed at once, in threads (ONNX Runtime, GEOS and qhull release the GIL): torus
 #: 22k, 37 charts, 2 cores: 266 -> 187 ms.
 REMESH_THREADS = 2
-
-
-def fold_share(mesh: trimesh.Trimesh) -> float:
-    """Share of adjacent face pairs of ``mesh`` meeting at more than 120° (a fold-over)."""
-    angles = mesh.face_adjacency_angles
-    return float(np.mean(angles > _FOLD_ANGLE)) if len(angles) else 0.0
 
 
 class AtlasReconstructor(BaseEstimator):
@@ -297,7 +288,6 @@ class AtlasReconstructor(BaseEstimator):
         if not hasattr(self, "charts_"):
             raise NotFittedError("fit() the atlas first")
         started = time.perf_counter()
-        self._pin_chart_grids()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", ReconstructionWarning)
             with ThreadPoolExecutor(min(REMESH_THREADS, len(self.charts_))) as pool:
@@ -346,8 +336,6 @@ class AtlasReconstructor(BaseEstimator):
         a loaded atlas re-meshes incrementally too."""
         if not hasattr(self, "charts_"):
             raise NotFittedError("nothing to save: fit() the atlas first")
-        self._pin_chart_grids()
-        self._sample_depths()
         charts, arrays = [], {}
         for index, chart in enumerate(self.charts_):
             meta, chart_arrays = chart.state(prefix=f"chart{index}_")

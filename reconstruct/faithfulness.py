@@ -34,6 +34,9 @@ NOISE_FACTOR = 3.0
 #: (With the nearest distance alone, the random square's natural gaps counted: 0.0029.)
 BRIDGE_SPACINGS = 2.0
 BRIDGE_LIMIT = 0.001
+#: Largest share of a mesh's adjacent face pairs folded back onto each other (> 120°).
+FOLD_LIMIT = 0.02
+_FOLD_ANGLE = np.radians(120)
 _K = 16
 _K_DENSE = 256
 _SAMPLES = 4000
@@ -51,6 +54,12 @@ def local_noise(points, k: int = _K, at=None) -> tuple[np.ndarray, np.ndarray]:
     distances, indices = cKDTree(points).query(at, k=k + 1)
     _, _, noise, _ = plane_fits(points[indices])
     return noise, distances[:, 1:].mean(axis=1)
+
+
+def fold_share(mesh) -> float:
+    """Share of adjacent face pairs of ``mesh`` meeting at more than 120° (a fold-over)."""
+    angles = mesh.face_adjacency_angles
+    return float(np.mean(angles > _FOLD_ANGLE)) if len(angles) else 0.0
 
 
 def noise_neighbours(n_points: int) -> int:

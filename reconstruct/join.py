@@ -36,7 +36,7 @@ from scipy.sparse.csgraph import (
 )
 from scipy.spatial import cKDTree
 
-from .sdf_grid import IMLS_NEIGHBOURS, IMLS_WIDTH, SparseSDF
+from .sdf_grid import SparseSDF, imls
 
 #: Voxels from the nearest sample within which a closed join trusts the tangent planes alone.
 _TRUSTED = 1.0
@@ -241,17 +241,10 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         # It caps a gap between the samples near their level instead of at the seal's edge.
         values = np.clip(seal * voxel - voxel * ndimage.distance_transform_edt(~exterior),
                          -(band + 1) * voxel, (band + 1) * voxel).ravel()
-        closing = values[near]
-        k = min(IMLS_NEIGHBOURS, len(samples))
-        d, index = tree.query(nodes[near], k=k)
-        d, index = d.reshape(-1, k), index.reshape(-1, k)
-        offsets = np.einsum("gki,gki->gk", nodes[near][:, None, :] - samples[index],
-                            normals[index])
-        weights = np.exp(-(d / (IMLS_WIDTH * voxel)) ** 2)
-        values[near] = (weights * offsets).sum(axis=1) / np.maximum(weights.sum(axis=1), 1e-300)
+        planes, d = imls(nodes[near], samples, normals, tree, voxel)
         # the tangent planes within a voxel of a sample, the closing from two on
         blend = np.clip(d[:, 0] / voxel - _TRUSTED, 0.0, 1.0)
-        values[near] = (1 - blend) * values[near] + blend * closing
+        values[near] = (1 - blend) * planes + blend * values[near]
         values = values.reshape(shape)
         if _OPEN:
             values = ndimage.grey_opening(values, size=(_OPEN,) * 3)
@@ -291,11 +284,10 @@ def split_nonmanifold(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     sheets touch in a grid cell, they are parted. Positions are unchanged."""
     faces = np.asarray(mesh.faces)
     n_faces = len(faces)
-    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    directed, key = _edge_keys(faces)
     corner_a = (3 * np.arange(n_faces)[:, None] + np.array([0, 1, 2])).ravel()
     corner_b = (3 * np.arange(n_faces)[:, None] + np.array([1, 2, 0])).ravel()
-    _, edge, counts = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True,
-                                return_counts=True)
+    _, edge, counts = np.unique(key, return_inverse=True, return_counts=True)
     edge = edge.ravel()
     manifold = np.flatnonzero(counts[edge] == 2)
     order = manifold[np.argsort(edge[manifold], kind="stable")]
@@ -316,13 +308,20 @@ def split_nonmanifold(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
                            fan.reshape(-1, 3), process=False)
 
 
+def _edge_keys(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The half-edges (3f, 2) of ``faces`` (f, 3), in the faces' direction, and one int64 key
+    (3f,) per undirected edge (equal keys: the same edge; sorted keys: lexicographic order)."""
+    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    ordered = np.sort(directed, axis=1).astype(np.int64)
+    return directed, ordered[:, 0] * (int(ordered.max(initial=0)) + 1) + ordered[:, 1]
+
+
 def n_pieces(faces: np.ndarray) -> int:
     """Number of pieces of ``faces`` (f, 3) joined across edges of exactly two faces (as
     trimesh's ``split`` counts them), found from one integer key per edge (fast)."""
     if len(faces) == 0:
         return 0
-    ordered = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1).astype(np.int64)
-    key = ordered[:, 0] * (int(ordered.max()) + 1) + ordered[:, 1]
+    _, key = _edge_keys(faces)
     order = np.argsort(key, kind="stable")
     run_start = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1]])
     run_length = np.diff(np.r_[run_start, len(key)])
@@ -335,9 +334,7 @@ def n_pieces(faces: np.ndarray) -> int:
 def border_loops(faces: np.ndarray) -> list[np.ndarray]:
     """Closed loops (vertex indices, in the faces' direction) of the edges of ``faces`` (f, 3)
     that belong to one face only. A vertex where two loops touch is walked through once each."""
-    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    ordered = np.sort(directed, axis=1).astype(np.int64)
-    key = ordered[:, 0] * (int(ordered.max(initial=0)) + 1) + ordered[:, 1]  # one int per edge
+    directed, key = _edge_keys(faces)
     _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     border = directed[counts[inverse.ravel()] == 1]
     following: dict[int, list[int]] = {}

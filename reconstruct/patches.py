@@ -44,6 +44,8 @@ from sklearn.base import BaseEstimator, clone
 
 from reconstruct.errors import InvalidInputError
 
+from .faithfulness import FOLD_LIMIT, UNEXPLAINED_LIMIT, fold_share, unexplained_fraction
+
 log = logging.getLogger(__name__)
 
 
@@ -254,15 +256,12 @@ def unfaithful_patch(models, limit: float | None = None) -> str | None:
     """One line naming the first unfaithful fit among ``models`` ({patch name: fitted
     `SurfaceReconstructor`}), else None. Unfaithful: its mesh leaves over ``limit`` (None:
     ``UNEXPLAINED_LIMIT``) of its points unexplained, or folds over
-    (`reconstruct.atlas.fold_share` over ``FOLD_LIMIT``): the patch is not one disc-like
+    (`faithfulness.fold_share` over ``FOLD_LIMIT``): the patch is not one disc-like
     surface (a cup's inside and outside, a handle, an overhang, a curled ear), so the sectors
     do not mesh the object faithfully.
 
     Measured on 36-view simulated scans (the worst sector): vase and torus 0.000, figurine
     0.032, mug 0.125, two close sheets 0.337, hook 0.447 of the points unexplained."""
-    from reconstruct.atlas import FOLD_LIMIT, fold_share
-    from reconstruct.faithfulness import UNEXPLAINED_LIMIT, unexplained_fraction
-
     limit = UNEXPLAINED_LIMIT if limit is None else float(limit)
 
     for name in sorted(models):

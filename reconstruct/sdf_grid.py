@@ -40,14 +40,15 @@ def lattice_box(samples: np.ndarray, voxel: float, pad: float) -> tuple[np.ndarr
 
 def imls(nodes, samples, normals, tree: cKDTree, voxel: float):
     """IMLS signed distance at ``nodes`` (q, 3) from oriented ``samples`` (m, 3) / ``normals``
-    (m, 3) in ``tree``. Returns values (q,) and the distance to the 8th nearest sample (q,)."""
+    (m, 3) in ``tree``. Returns values (q,) and the distances (q, k) to the k nearest samples
+    (k = 8, or fewer samples), nearest first."""
     k = min(IMLS_NEIGHBOURS, len(samples))
     d, index = tree.query(nodes, k=k)
     d, index = d.reshape(len(nodes), k), index.reshape(len(nodes), k)
     offsets = np.einsum("gki,gki->gk", nodes[:, None, :] - samples[index], normals[index])
     weights = np.exp(-(d / (IMLS_WIDTH * voxel)) ** 2)
     values = (weights * offsets).sum(axis=1) / np.maximum(weights.sum(axis=1), 1e-300)
-    return values, d[:, -1]
+    return values, d
 
 
 class SparseSDF:
@@ -177,7 +178,9 @@ class SparseSDF:
         near = np.isfinite(distance)
         if not near.any():
             return
-        values, eighth = imls(nodes[near], self.samples_, self.normals_, self.tree_, self.voxel)
+        values, distances = imls(nodes[near], self.samples_, self.normals_, self.tree_,
+                                 self.voxel)
+        eighth = distances[:, -1]
         where = flat[near]
         self.values_.flat[where] = values
         self._eighth.flat[where] = eighth

@@ -23,10 +23,6 @@ from ..plan import ReconstructionParams
 #: against 1.63); the vase's and the torus's leave 0 %, and their sectors are as good and
 #: faster (torus: 97.7 % complete in 34 s against 99.5 % in 73 s).
 SECTOR_UNEXPLAINED = 0.01
-#: A scan's atlas is joined open (`AtlasReconstructor(closed=False)`): no view sees under the
-#: object or under an overhang, and a closed join caps those guesses. 36 views, 2 mm spacing
-#: (bench/scan.py): hook precision 0.827 closed (the outside leaks in under the arm: a seal of
-#: 6 voxels, thin shells, Euler -18) against 0.998 open; mug 0.970 against 0.982.
 
 
 def atlas_reason(params: ReconstructionParams, fits: dict, final: bool) -> str | None:
@@ -44,6 +40,10 @@ def atlas_reason(params: ReconstructionParams, fits: dict, final: bool) -> str |
 def fit_atlas(points, params: ReconstructionParams) -> tuple[AtlasReconstructor, float, list]:
     """(fitted atlas, seconds, warnings said) for the merged (n, 3) points, mm."""
     started = time.perf_counter()
+    # Joined open (closed=False): no view sees under the object or under an overhang, and a
+    # closed join caps those guesses. 36 views, 2 mm spacing (bench/scan.py): hook precision
+    # 0.827 closed (the outside leaks in under the arm: a seal of 6 voxels, thin shells, Euler
+    # -18) against 0.998 open; mug 0.970 against 0.982.
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ReconstructionWarning)
         atlas = AtlasReconstructor(lam=params.lam, depth=params.depth, closed=False,

@@ -4,8 +4,9 @@ joined into one mesh.
 `AtlasReconstructor.fit` splits the cloud into overlapping disc-like charts
 (`reconstruct.charts` on the sheet-respecting graph of `reconstruct.sheet_graph`), fits each
 with the paper's pipeline (embedding → adaptive MLP → multi-depth boundary → spline → mesh →
-ONNX map; the first chart's searched layer widths and K are reused by the others, which then
-train without a search), and accepts a chart only when it is faithful: its mesh leaves at most
+ONNX map; the first chart's searched layer widths and K, or the widths a one-chart search of
+the same cloud found, are reused by the others, which then train without a search, in
+``n_jobs`` worker processes), and accepts a chart only when it is faithful: its mesh leaves at most
 `UNEXPLAINED_LIMIT` of its points unexplained and does not fold over (`fold_share`); otherwise
 the chart is split and fitted again (at most ``max_splits`` times along one line of descent).
 The accepted charts' meshes, trimmed to a partition of the cloud, oriented alike (along their
@@ -33,10 +34,11 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from joblib import Parallel, delayed, effective_n_jobs
 from sklearn.base import BaseEstimator
 
 from .charts import ChartDecomposition
-from .errors import InvalidInputError, NotFittedError, ReconstructionWarning
+from .errors import FitError, InvalidInputError, NotFittedError, ReconstructionWarning
 from .faithfulness import FOLD_LIMIT, UNEXPLAINED_LIMIT, fold_share
 from .io import one_line, read_state, write_state
 from .join import chart_samples, exterior_votes, implicit_mesh, orient_charts, thin_shell
@@ -49,10 +51,9 @@ log = logging.getLogger(__name__)
 
 ATLAS_FORMAT = "scanstation-atlas/1"
 #: Parameters of the fit only (a loaded atlas re-meshes, it does not fit): not saved.
-_FIT_ONLY_PARAMS = ("graph",)
+_FIT_ONLY_PARAMS = ("graph", "n_jobs", "hidden_layers")
 #: Boundary depths whose samples `fit` computes (and `state` saves) for every chart, so a
-#: fitted or loaded atlas re-meshes to another of them without sampling its boundaries first
-#: (~1 s for 35 charts: a first depth change took 793 ms against 277 for a new λ).
+#: fitted or loaded atlas re-meshes to another of them without sampling its boundaries first.
 SAVED_DEPTHS = (1, 2, 3)
 
 #: A chart faces out of the object when its exterior vote (`join.exterior_votes`) is this clear.
@@ -61,9 +62,75 @@ VOTE_LIMIT = 0.5
 UNCHARTED = 1.0
 #: The cloud is closed when charts facing clearly out hold this share of the join's samples.
 CLOSED_SHARE = 0.5
+#: Charts of more points than this are embedded by landmark Isomap: full Isomap's all-pairs
+#: geodesics took a third of an atlas's fit (rough 20k, 47 charts: 9.5 of 27 s). On 500-3,000
+#: point terrains landmark Isomap ran 4-28x faster with the same residual variance (to 1e-4).
+LANDMARK_CHARTS = 400
+#: Fresh starts of a chart's final fits beside its first (`AdaptiveMLP.final_starts`): the
+#: join averages overlapping charts anyway. Rough 20k (layers (15, 15), 47 charts): Chamfer
+#: 0.00653 with one, 0.00652 with two; relief 20k 0.5357 against 0.5372; fits 8.3 s against 10.6.
+CHART_FINAL_STARTS = 1
 #: Charts re-meshed at once, in threads (ONNX Runtime, GEOS and qhull release the GIL): torus
 #: 22k, 37 charts, 2 cores: 266 -> 187 ms.
 REMESH_THREADS = 2
+
+
+def _import_pipeline() -> None:
+    from . import pipeline  # noqa: F401
+    from .networks import load_torch
+
+    load_torch()
+
+
+def fit_chart(points, lam: float, depth: int, random_state, n_neighbors: int | None = None,
+              hidden_layers: tuple[int, ...] | None = None) -> tuple:
+    """Fit one chart (m, 3) with the paper's pipeline: a search, or the given ``hidden_layers``
+    and K. Returns (fitted `SurfaceReconstructor` or None, fault or None): the fault says why
+    the chart is not faithful (`faithfulness`) or could not be fitted."""
+    from .mlp import AdaptiveMLP
+    from .pipeline import SurfaceReconstructor
+
+    params = dict(lam=lam, depth=depth, random_state=random_state, atlas="never",
+                  embedding="landmark" if len(points) > LANDMARK_CHARTS else "auto")
+    if hidden_layers is not None:
+        params.update(n_neighbors=n_neighbors, mlp=AdaptiveMLP(
+            hidden_layers=hidden_layers, final_starts=CHART_FINAL_STARTS,
+            random_state=random_state))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ReconstructionWarning)
+            reconstructor = SurfaceReconstructor(**params).fit(points)
+    except Exception as exc:  # a chart the method cannot fit is split, never hidden
+        log.info("a chart of %d points failed to fit: %s", len(points), exc)
+        return None, f"fit failed ({one_line(exc)})"
+    faults = []
+    if reconstructor.unexplained_ > UNEXPLAINED_LIMIT:
+        faults.append(f"{100 * reconstructor.unexplained_:.0f} % of its points unexplained")
+    folds = fold_share(reconstructor.mesh_)
+    if folds > FOLD_LIMIT:
+        faults.append(f"mesh folds over ({100 * folds:.1f} % of its edges)")
+    reconstructor.fold_share_ = folds
+    ready_to_remesh(reconstructor)
+    return reconstructor, ("; ".join(faults) or None)
+
+
+def ready_to_remesh(chart) -> None:
+    """Pin a fitted chart's grid spacing (its ``grid_spacing``) and mesh it again on the lattice
+    of that spacing, where a new outline leaves the interior be (the join's samples stay put);
+    and sample its boundary at each of `SAVED_DEPTHS` (cached, saved with its state), so a
+    re-mesh to one of those depths need not sample first (a first depth change took 793 ms
+    against 277 for a new λ, torus 22k, 35 charts)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ReconstructionWarning)  # said by the fit already
+        if chart.grid_spacing is None:
+            chart.remesh(grid_spacing=default_spacing(chart.outline_, len(chart.embedding_)))
+    depth = chart.depth
+    try:
+        for saved_depth in SAVED_DEPTHS:
+            chart.depth = saved_depth
+            chart._boundary_points()
+    finally:
+        chart.depth = depth
 
 
 class AtlasReconstructor(BaseEstimator):
@@ -90,8 +157,13 @@ class AtlasReconstructor(BaseEstimator):
     closed : None: join the charts as the boundary of a volume when their exterior votes say
         the cloud is closed, else as an open surface; False: always open (a scan with unseen
         parts, where a closed join caps guesses: `capture.live.atlas_fit`); True: always closed.
+    hidden_layers : the charts' layer widths, e.g. searched by a one-chart fit of the same
+        cloud (`SurfaceReconstructor`); None: the first chart's search finds them.
     graph : an unfitted `SheetGraph` (its parameters); None: the defaults.
-    random_state : seed (same seed, same mesh).
+    n_jobs : processes fitting the charts after the first (joblib: -1 every core, 1 none).
+        Rough surface 20k, 47 charts, 2 cores: fits 17.0 s in one process, 9.4 s in two
+        (12.3 with the workers started cold, 10.6 started while the cloud is decomposed).
+    random_state : seed (same seed, same mesh, whatever ``n_jobs``).
 
     Fitted attributes: ``charts_`` list of fitted `SurfaceReconstructor`, ``chart_points_`` list
     of (m_i,) indices of the points each was fitted to, ``decomposition_``
@@ -107,7 +179,9 @@ class AtlasReconstructor(BaseEstimator):
                  depth: int = 2, reuse_layers: bool = True, max_splits: int = 2,
                  voxel: float = 0.5, band: float = 3.0, trim: float = 1.0, reach: float = 1.0,
                  shell: float = 1.0, closed: bool | None = None,
-                 graph: SheetGraph | None = None, random_state: int | None = 0):
+                 hidden_layers: tuple[int, ...] | None = None,
+                 graph: SheetGraph | None = None, n_jobs: int | None = -1,
+                 random_state: int | None = 0):
         self.chart_size = chart_size
         self.overlap = overlap
         self.lam = lam
@@ -120,7 +194,9 @@ class AtlasReconstructor(BaseEstimator):
         self.reach = reach
         self.shell = shell
         self.closed = closed
+        self.hidden_layers = hidden_layers
         self.graph = graph
+        self.n_jobs = n_jobs
         self.random_state = random_state
 
     def fit(self, points, y=None) -> AtlasReconstructor:
@@ -128,6 +204,7 @@ class AtlasReconstructor(BaseEstimator):
         points = check_points(points)
         started = time.perf_counter()
         self.timings_ = {}
+        warming = self._warm_workers()
         decomposition = ChartDecomposition(
             chart_size=self.chart_size, overlap=self.overlap, graph=self.graph,
             random_state=self.random_state).fit(points)
@@ -136,33 +213,38 @@ class AtlasReconstructor(BaseEstimator):
         self.points_ = points
         fitted: dict[int, tuple] = {}
         self.faults_ = []
+        list(warming)  # the workers are up
         queue = [(index, 0) for index in range(decomposition.n_charts_)]
-        first = None
+        first = None  # the first fitted chart: its searched layers and K are the others'
         while queue:
-            index, splits = queue.pop(0)
-            members = decomposition.chart(index)
-            reconstructor, fault = self._fit_chart(points[members], first, index)
-            if fault is not None and splits < self.max_splits and len(
-                    decomposition.cores_[index]) >= 2 * decomposition.min_points:
-                new = decomposition.split(index)
-                log.info("chart %d: %s; split in %d", index, fault, len(new))
-                queue += [(i, splits + 1) for i in new]
-                fitted.pop(index, None)
-                continue
-            if fault is not None:
-                self.faults_.append(f"chart {index} ({len(members)} points): {fault}")
-            if first is None and reconstructor is not None:
-                first = reconstructor
-            fitted[index] = (reconstructor, members)
-            log.info("chart %d of %d fitted (%d points, %.0f s so far)", len(fitted),
-                     decomposition.n_charts_, len(members), time.perf_counter() - started)
+            # until one chart has searched the layers, one at a time; then all waiting at once
+            alone = first is None and self.hidden_layers is None
+            batch, queue = (queue[:1], queue[1:]) if alone else (queue, [])
+            members = [decomposition.chart(index) for index, _ in batch]
+            results = self._fit_charts([points[m] for m in members], first)
+            for (index, splits), chart, (reconstructor, fault) in zip(
+                    batch, members, results, strict=True):
+                if fault is not None and splits < self.max_splits and len(
+                        decomposition.cores_[index]) >= 2 * decomposition.min_points:
+                    new = decomposition.split(index)
+                    log.info("chart %d: %s; split in %d", index, fault, len(new))
+                    queue += [(i, splits + 1) for i in new]
+                    fitted.pop(index, None)
+                    continue
+                if fault is not None:
+                    self.faults_.append(f"chart {index} ({len(chart)} points): {fault}")
+                if first is None and reconstructor is not None:
+                    first = reconstructor
+                fitted[index] = (reconstructor, chart)
+            log.info("%d of %d charts fitted (%.0f s so far)", len(fitted),
+                     decomposition.n_charts_, time.perf_counter() - started)
         order = sorted(i for i in fitted if fitted[i][0] is not None)
+        if not order:
+            raise FitError(f"no chart of the atlas could be fitted: {self.faults_[0]}")
         self.charts_ = [fitted[i][0] for i in order]
         self.chart_points_ = [fitted[i][1] for i in order]
         self._chart_ids = order
         self.timings_["fits"] = time.perf_counter() - started - self.timings_["charts"]
-        self._pin_chart_grids()  # the charts' grids on their lattices: re-meshing is incremental
-        self._sample_depths()  # and a new depth (1-3) needs no boundary sampling
         self.signs_ = orient_charts([c.mesh_ for c in self.charts_], self.chart_points_, points)
         self._join()
         self.timings_["total"] = time.perf_counter() - started
@@ -171,31 +253,28 @@ class AtlasReconstructor(BaseEstimator):
                  self.timings_["total"])
         return self
 
-    def _fit_chart(self, chart_points, first, index):
-        """Fit one chart; returns (reconstructor or None, fault or None)."""
-        from .mlp import AdaptiveMLP
-        from .pipeline import SurfaceReconstructor
+    def _warm_workers(self):
+        """Start the ``n_jobs`` worker processes (importing torch and the pipeline: ~3 s for
+        two, rough 20k) while this one decomposes the cloud; a generator to wait on."""
+        n_jobs = effective_n_jobs(self.n_jobs)
+        if n_jobs == 1:
+            return iter(())
+        return Parallel(n_jobs=n_jobs, return_as="generator_unordered")(
+            delayed(_import_pipeline)() for _ in range(n_jobs))
 
+    def _fit_charts(self, clouds: list[np.ndarray], first) -> list[tuple]:
+        """Fit the charts of ``clouds`` (each (m_i, 3)), in ``n_jobs`` processes when there are
+        several; returns (reconstructor or None, fault or None) per cloud."""
         params = dict(lam=self.lam, depth=self.depth, random_state=self.random_state,
-                      atlas="never")
+                      hidden_layers=self.hidden_layers)
         if first is not None and self.reuse_layers:
-            params.update(n_neighbors=first.n_neighbors_, mlp=AdaptiveMLP(
-                hidden_layers=first.hidden_layers_, random_state=self.random_state))
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", ReconstructionWarning)
-                reconstructor = SurfaceReconstructor(**params).fit(chart_points)
-        except Exception as exc:  # a chart the method cannot fit is split, never hidden
-            log.info("chart %d failed to fit: %s", index, exc)
-            return None, f"fit failed ({exc})"
-        faults = []
-        if reconstructor.unexplained_ > UNEXPLAINED_LIMIT:
-            faults.append(f"{100 * reconstructor.unexplained_:.0f} % of its points unexplained")
-        folds = fold_share(reconstructor.mesh_)
-        if folds > FOLD_LIMIT:
-            faults.append(f"mesh folds over ({100 * folds:.1f} % of its edges)")
-        reconstructor.fold_share_ = folds
-        return reconstructor, ("; ".join(faults) or None)
+            params.update(n_neighbors=first.n_neighbors_, hidden_layers=first.hidden_layers_)
+        n_jobs = effective_n_jobs(self.n_jobs)
+        if n_jobs == 1 or len(clouds) == 1:
+            return [fit_chart(cloud, **params) for cloud in clouds]
+        # loky workers, reused by later fits, each with one BLAS / OpenMP thread per core
+        return Parallel(n_jobs=min(n_jobs, len(clouds)))(
+            delayed(fit_chart)(cloud, **params) for cloud in clouds)
 
     def _join(self, decide: bool = True) -> None:
         """Join the charts' meshes into ``mesh_``. ``decide``: find again which side of each
@@ -303,28 +382,6 @@ class AtlasReconstructor(BaseEstimator):
                  self._sdf.n_changed_, len(self.samples_), self._sdf.n_evaluated_,
                  1000 * self.timings_["remesh"])
         return self.mesh_
-
-    def _pin_chart_grids(self) -> None:
-        """Keep each chart's fitted grid spacing (its ``grid_spacing``) from now on, and mesh it
-        again on the lattice of that spacing, where a new outline leaves the interior be."""
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ReconstructionWarning)  # said by the fit already
-            for chart in self.charts_:
-                if chart.grid_spacing is None:
-                    chart.remesh(grid_spacing=default_spacing(chart.outline_,
-                                                              len(chart.embedding_)))
-
-    def _sample_depths(self) -> None:
-        """Sample every chart's boundary at each of `SAVED_DEPTHS` (cached in the chart, saved
-        with its state): a re-mesh to one of those depths need not sample first."""
-        for chart in self.charts_:
-            depth = chart.depth
-            try:
-                for saved_depth in SAVED_DEPTHS:
-                    chart.depth = saved_depth
-                    chart._boundary_points()
-            finally:
-                chart.depth = depth
 
     # -- persistence ---------------------------------------------------------------------------
     def state(self) -> tuple[dict, dict[str, np.ndarray]]:

@@ -221,52 +221,39 @@ class AdaptiveMLP(BaseEstimator):
     # -- fitting -------------------------------------------------------------------------------
     def fit(self, uv, xyz) -> AdaptiveMLP:
         """uv : (n, 2) embedded points; xyz : (n, 3) their 3D positions. Returns self."""
+        return self.search(uv, xyz).finish()
+
+    def search(self, uv, xyz) -> AdaptiveMLP:
+        """The growth alone (or, with ``hidden_layers`` given, a fresh net of them): sets
+        ``hidden_layers_``, ``history_`` and, after a search, a provisional ``surface_map_`` of
+        the searched net (trained on the search's subset, not converged: enough to see that one
+        chart is the wrong model, `SurfaceReconstructor`). `finish` runs the final fits."""
         self._check_params()
         started = time.perf_counter()
         rng, generator = self._random()
         tensors = self._samples(uv, xyz, rng, new_normalisation=True)
         n_in, n_out = (t.shape[1] for t in tensors["train"])
-        if self.hidden_layers is not None:
-            return self._fit_given(tensors, generator, n_in, n_out)
-        search = dict(tensors, train=tensors["search"])
         self.history_ = []
-        best = None  # (weighted, layers, net): the lowest error, whose layers the next one grows
-        tried = []  # (weighted, n_parameters, layers, net) of every configuration
-        previous_layer_net = None
         with one_torch_thread():
-            for _layer in range(int(self.max_layers)):
-                layer_best, stale, net = None, 0, None
-                for width in range(1, int(self.max_neurons) + 1):
-                    layers = (*(best[1] if best else ()), width)  # best earlier layers + 1
-                    net, record = self._search_step(layers, net, previous_layer_net, search,
-                                                    generator, n_in, n_out)
-                    if layer_best is not None and (
-                        record["weighted_mse"] > self.retry_factor * layer_best[0]
-                    ):  # a poor local minimum: one more start
-                        retry, again = self._search_step(layers, None, None, search, generator,
-                                                         n_in, n_out, retry=True)
-                        if again["weighted_mse"] < record["weighted_mse"]:
-                            net, record = retry, again
-                    score = record["weighted_mse"]
-                    # kept as is: growing builds a new net, the search never trains this again
-                    tried.append((score, n_parameters(layers, n_in, n_out), layers, net))
-                    if layer_best is None or score < layer_best[0] * (1 - self.tol):
-                        layer_best, stale = (score, layers, net), 0
-                    else:
-                        stale += 1
-                        if stale >= self.neuron_patience:
-                            break
-                if best is not None and layer_best[0] >= best[0] * (1 - self.tol):
-                    break  # a further layer did not help: stop growing
-                if best is None or layer_best[0] < best[0]:
-                    best = layer_best
-                previous_layer_net = best[2]
+            if self.hidden_layers is not None:
+                self.hidden_layers_ = tuple(int(w) for w in self.hidden_layers)
+                net = build(self.hidden_layers_, self.activation, n_in, n_out, generator)
+            else:
+                self.hidden_layers_, net = self._grow(tensors, generator, n_in, n_out)
+                self.surface_map_ = OnnxSurfaceMap(self._export(net))
+        self._searched = (net, tensors, generator, time.perf_counter() - started)
+        return self
 
-            tie = self.near_best * np.sqrt(2.0 / len(tensors["test"][0]))  # standard errors
-            near = [t for t in tried if t[0] <= best[0] * (1 + tie)]
-            _, _, self.hidden_layers_, net = max(near, key=lambda t: (t[1], -t[0]))
-            searched = time.perf_counter()
-            if self.retrain:
+    def finish(self) -> AdaptiveMLP:
+        """The final fits of the searched configuration (`_train_final`, or `_retrain`) and
+        its ONNX map. Returns self."""
+        if not hasattr(self, "_searched"):
+            raise NotFittedError("search() the AdaptiveMLP before finish()")
+        net, tensors, generator, searching = self._searched
+        del self._searched
+        started = time.perf_counter()
+        with one_torch_thread():
+            if self.retrain and self.hidden_layers is None:
                 net = self._retrain(net, tensors, generator)
             else:
                 net = self._train_final(net, tensors, generator)
@@ -274,25 +261,50 @@ class AdaptiveMLP(BaseEstimator):
         self.torch_model_ = net.eval()
         self._store_errors(tensors)
         self.surface_map_ = OnnxSurfaceMap(self._export(net))
-        self.timings_ = {"search": searched - started, "final fits": trained - searched,
+        self.timings_ = {"search": searching, "final fits": trained - started,
                          "export": time.perf_counter() - trained}
-        log.info(
-            "MLP chose hidden layers %s after %d configurations (%.1f s)",
-            self.hidden_layers_, len(self.history_), time.perf_counter() - started,
-        )
+        log.info("MLP chose hidden layers %s after %d configurations (%.1f s)",
+                 self.hidden_layers_, len(self.history_), searching + time.perf_counter() - started)
         return self
 
-    def _fit_given(self, tensors, generator, n_in, n_out) -> AdaptiveMLP:
-        """`fit` at the given ``hidden_layers``: the search's final stage only."""
-        self.history_ = []
-        self.hidden_layers_ = tuple(int(w) for w in self.hidden_layers)
-        with one_torch_thread():
-            net = build(self.hidden_layers_, self.activation, n_in, n_out, generator)
-            net = self._train_final(net, tensors, generator)
-        self.torch_model_ = net.eval()
-        self._store_errors(tensors)
-        self.surface_map_ = OnnxSurfaceMap(self._export(net))
-        return self
+    def _grow(self, tensors, generator, n_in, n_out) -> tuple:
+        """The neuron-by-neuron, layer-by-layer growth on the search subset; returns (chosen
+        layers, its net)."""
+        search = dict(tensors, train=tensors["search"])
+        best = None  # (weighted, layers, net): the lowest error, whose layers the next one grows
+        tried = []  # (weighted, n_parameters, layers, net) of every configuration
+        previous_layer_net = None
+        for _layer in range(int(self.max_layers)):
+            layer_best, stale, net = None, 0, None
+            for width in range(1, int(self.max_neurons) + 1):
+                layers = (*(best[1] if best else ()), width)  # best earlier layers + 1
+                net, record = self._search_step(layers, net, previous_layer_net, search,
+                                                generator, n_in, n_out)
+                if layer_best is not None and (
+                    record["weighted_mse"] > self.retry_factor * layer_best[0]
+                ):  # a poor local minimum: one more start
+                    retry, again = self._search_step(layers, None, None, search, generator,
+                                                     n_in, n_out, retry=True)
+                    if again["weighted_mse"] < record["weighted_mse"]:
+                        net, record = retry, again
+                score = record["weighted_mse"]
+                # kept as is: growing builds a new net, the search never trains this again
+                tried.append((score, n_parameters(layers, n_in, n_out), layers, net))
+                if layer_best is None or score < layer_best[0] * (1 - self.tol):
+                    layer_best, stale = (score, layers, net), 0
+                else:
+                    stale += 1
+                    if stale >= self.neuron_patience:
+                        break
+            if best is not None and layer_best[0] >= best[0] * (1 - self.tol):
+                break  # a further layer did not help: stop growing
+            if best is None or layer_best[0] < best[0]:
+                best = layer_best
+            previous_layer_net = best[2]
+        tie = self.near_best * np.sqrt(2.0 / len(tensors["test"][0]))  # standard errors
+        near = [t for t in tried if t[0] <= best[0] * (1 + tie)]
+        _, _, layers, net = max(near, key=lambda t: (t[1], -t[0]))
+        return layers, net
 
     def fine_tune(self, uv, xyz) -> AdaptiveMLP:
         """Continue training the chosen network on new samples (warm start, no search)."""

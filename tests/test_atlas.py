@@ -8,7 +8,12 @@ import pytest
 import trimesh
 
 from reconstruct.atlas import AtlasReconstructor, fold_share
-from reconstruct.errors import InvalidInputError, NotFittedError, ReconstructionWarning
+from reconstruct.errors import (
+    FitError,
+    InvalidInputError,
+    NotFittedError,
+    ReconstructionWarning,
+)
 from reconstruct.join import close_small_holes, implicit_mesh
 from reconstruct.metrics import surface_report
 from reconstruct.pipeline import SurfaceReconstructor
@@ -84,6 +89,22 @@ def test_an_open_patch_keeps_its_border_and_its_hole():
     assert lengths[~near_hole].max() > 0.8 * 8
     # and the mesh ends near the data's border (noise σ 0.028 scatters points to ±1.08)
     assert np.abs(centres[:, :2]).max() < 1.15
+
+
+def test_charts_fitted_in_two_processes_give_the_same_mesh():
+    points = holed_patch(n=1500)
+    one = AtlasReconstructor(chart_size=500, n_jobs=1).fit(points)
+    two = AtlasReconstructor(chart_size=500, n_jobs=2).fit(points)
+    assert len(one.charts_) > 2
+    np.testing.assert_array_equal(one.mesh_.vertices, two.mesh_.vertices)
+    np.testing.assert_array_equal(one.mesh_.faces, two.mesh_.faces)
+
+
+def test_an_atlas_of_no_fitted_chart_says_why(monkeypatch):
+    monkeypatch.setattr("reconstruct.atlas.fit_chart",
+                        lambda points, **_: (None, "fit failed (no luck)"))
+    with pytest.raises(FitError, match="no chart of the atlas could be fitted: .*no luck"):
+        AtlasReconstructor(chart_size=1000, n_jobs=1).fit(sphere_cloud())
 
 
 def test_implicit_mesh_closes_oriented_samples_of_a_sphere():

@@ -90,4 +90,6 @@ def test_a_cloud_with_a_hole_goes_through_the_atlas():
     points = np.c_[xy, 0.2 * np.sin(2 * xy[:, 0]) + rng.normal(0, 0.01, len(xy))]
     model = SurfaceReconstructor(max_layers=1, max_neurons=6).fit(points)
     assert model.atlas_reason_ == "one chart's mesh spans holes in the data"
+    # seen on the searched net's mesh: its layers fit the charts, no final fits of one chart
+    assert model.atlas_.hidden_layers == model.atlas_.charts_[0].hidden_layers_
     assert bridged_share(model.mesh_, points) < 0.001

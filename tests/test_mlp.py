@@ -72,6 +72,20 @@ def test_same_seed_same_network():
     assert a.surface_map_.to_bytes() == b.surface_map_.to_bytes()
 
 
+def test_search_then_finish_is_fit_and_the_searched_map_comes_first():
+    uv, xyz = paraboloid(300, sigma=0.1)
+    whole = AdaptiveMLP(random_state=3, **SMALL).fit(uv, xyz)
+    apart = AdaptiveMLP(random_state=3, **SMALL).search(uv, xyz)
+    assert apart.hidden_layers_ == whole.hidden_layers_
+    provisional = apart.predict(uv)  # the searched net, before its final fits
+    assert not hasattr(apart, "torch_model_")
+    apart.finish()
+    np.testing.assert_array_equal(apart.predict(uv), whole.predict(uv))
+    assert np.mean((provisional - xyz) ** 2) > np.mean((whole.predict(uv) - xyz) ** 2)
+    with pytest.raises(NotFittedError, match="search"):
+        apart.finish()  # once only
+
+
 @pytest.mark.parametrize("activation", ["sigmoid", "relu"])
 def test_activation_is_selectable(activation):
     uv, xyz = paraboloid(300)

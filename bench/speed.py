@@ -221,17 +221,39 @@ def remesh_bench(seed=0, repeats=7) -> dict:
             "torch_ms": 1000 * statistics.median(torch_t)}
 
 
-def peak_memory_gb() -> float:
-    """This process's peak resident memory. VmHWM restarts at exec, unlike ru_maxrss, which a
-    spawned child inherits from its parent's fork."""
+def _peak_kib(pid="self") -> int:
+    """VmHWM (peak resident, KiB) of a process; 0 when it is gone. VmHWM restarts at exec,
+    unlike ru_maxrss, which a spawned child inherits from its parent's fork."""
     try:
-        with open("/proc/self/status") as status:
+        with open(f"/proc/{pid}/status") as status:
             for line in status:
                 if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 2**20  # kB → GiB
+                    return int(line.split()[1])
     except OSError:
         pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    return 0
+
+
+def _children(pid="self") -> list[str]:
+    """Live child processes of ``pid``, and theirs (/proc/<pid>/task/*/children)."""
+    found = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            found += (task / "children").read_text().split()
+        except OSError:
+            continue
+    return found + [grandchild for child in found for grandchild in _children(child)]
+
+
+def peak_memory_gb(with_workers: bool = False) -> float:
+    """This process's peak resident memory; ``with_workers``: plus every live child's peak (the
+    atlas's chart workers), an upper bound since their peaks need not coincide."""
+    kib = _peak_kib()
+    if not kib:
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    if with_workers:
+        kib += sum(_peak_kib(child) for child in _children())
+    return kib / 2**20
 
 
 STAGES = ("read", "embedding", "search", "final fits", "export", "boundary", "mesh", "write")
@@ -258,12 +280,14 @@ def _end_to_end(name, n, seed, queue):
         seconds = time.perf_counter() - started
     stages = dict(getattr(model, "timings_", {}), read=read, write=time.perf_counter() - written)
     atlas = getattr(model, "atlas_", None)
-    if atlas is not None:  # the one chart spanned holes or folded: an atlas of charts (the
-        # stages are the one chart's; the total includes the atlas)
-        method, layers = f"atlas of {len(atlas.charts_)} charts", atlas.charts_[0].hidden_layers_
+    if atlas is not None:  # the one chart spanned holes or folded: an atlas of charts
+        method = (f"atlas of {len(atlas.charts_)} charts ("
+                  + ", ".join(f"{k} {v:.1f}" for k, v in atlas.timings_.items()) + " s)")
+        layers = atlas.charts_[0].hidden_layers_
     else:
         method, layers = model.embedding_method_, model.hidden_layers_
-    queue.put({"shape": name, "n": n, "seconds": seconds, "peak_gb": peak_memory_gb(),
+    queue.put({"shape": name, "n": n, "seconds": seconds,
+               "peak_gb": peak_memory_gb(with_workers=True),
                "faces": len(model.mesh_.faces), "method": method, "layers": layers,
                "stages": stages})
 

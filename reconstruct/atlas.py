@@ -26,6 +26,7 @@ carry the charts' maps, the partition, the signs and the join's grid to another 
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
 import time
 import warnings
@@ -34,7 +35,8 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from joblib import Parallel, delayed, effective_n_jobs
+from joblib import effective_n_jobs
+from joblib.externals.loky import get_reusable_executor
 from sklearn.base import BaseEstimator
 
 from .charts import ChartDecomposition
@@ -45,13 +47,14 @@ from .join import chart_samples, exterior_votes, implicit_mesh, orient_charts, t
 from .meshing import default_spacing
 from .sdf_grid import SparseSDF
 from .sheet_graph import SheetGraph
+from .threads import single_threaded
 from .validation import check_points
 
 log = logging.getLogger(__name__)
 
 ATLAS_FORMAT = "scanstation-atlas/1"
 #: Parameters of the fit only (a loaded atlas re-meshes, it does not fit): not saved.
-_FIT_ONLY_PARAMS = ("graph", "n_jobs", "hidden_layers")
+_FIT_ONLY_PARAMS = ("graph", "n_jobs", "hidden_layers", "n_neighbors")
 #: Boundary depths whose samples `fit` computes (and `state` saves) for every chart, so a
 #: fitted or loaded atlas re-meshes to another of them without sampling its boundaries first.
 SAVED_DEPTHS = (1, 2, 3)
@@ -70,6 +73,9 @@ LANDMARK_CHARTS = 400
 #: join averages overlapping charts anyway. Rough 20k (layers (15, 15), 47 charts): Chamfer
 #: 0.00653 with one, 0.00652 with two; relief 20k 0.5357 against 0.5372; fits 8.3 s against 10.6.
 CHART_FINAL_STARTS = 1
+#: Seconds an idle chart worker waits for the next atlas before it exits.
+WORKER_IDLE = 300
+_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 #: Charts re-meshed at once, in threads (ONNX Runtime, GEOS and qhull release the GIL): torus
 #: 22k, 37 charts, 2 cores: 266 -> 187 ms.
 REMESH_THREADS = 2
@@ -91,9 +97,10 @@ def fit_chart(points, lam: float, depth: int, random_state, n_neighbors: int | N
     from .pipeline import SurfaceReconstructor
 
     params = dict(lam=lam, depth=depth, random_state=random_state, atlas="never",
-                  embedding="landmark" if len(points) > LANDMARK_CHARTS else "auto")
+                  embedding="landmark" if len(points) > LANDMARK_CHARTS else "auto",
+                  n_neighbors=n_neighbors)
     if hidden_layers is not None:
-        params.update(n_neighbors=n_neighbors, mlp=AdaptiveMLP(
+        params.update(mlp=AdaptiveMLP(
             hidden_layers=hidden_layers, final_starts=CHART_FINAL_STARTS,
             random_state=random_state))
     try:
@@ -157,9 +164,16 @@ class AtlasReconstructor(BaseEstimator):
     closed : None: join the charts as the boundary of a volume when their exterior votes say
         the cloud is closed, else as an open surface; False: always open (a scan with unseen
         parts, where a closed join caps guesses: `capture.live.atlas_fit`); True: always closed.
-    hidden_layers : the charts' layer widths, e.g. searched by a one-chart fit of the same
-        cloud (`SurfaceReconstructor`); None: the first chart's search finds them.
+    hidden_layers, n_neighbors : the charts' layer widths and K, e.g. of a one-chart fit of the
+        same cloud (`SurfaceReconstructor`); None: the first chart's search and choice.
     graph : an unfitted `SheetGraph` (its parameters); None: the defaults.
+    max_points : a denser cloud is charted, fitted and joined on this many of its points (drawn
+        at random; each chart's net trains on at most 6,000 points anyway). At σ 1 % more
+        points add noise rather than detail, and the neighbourhoods of the sheet graph and of
+        the faithfulness checks shrink below the noise: rough surface 30,000 points, 60 graph
+        pieces, Chamfer 0.0070 against 0.0064 at 20,000; at 100,000, 1,275 pieces, 386 charts,
+        most split again for 5-12 % unexplained points (over 8 min, 4 GB). 100,000 charted on
+        20,000: see bench.speed.
     n_jobs : processes fitting the charts after the first (joblib: -1 every core, 1 none).
         Rough surface 20k, 47 charts, 2 cores: fits 17.0 s in one process, 9.4 s in two
         (12.3 with the workers started cold, 10.6 started while the cloud is decomposed).
@@ -179,8 +193,9 @@ class AtlasReconstructor(BaseEstimator):
                  depth: int = 2, reuse_layers: bool = True, max_splits: int = 2,
                  voxel: float = 0.5, band: float = 3.0, trim: float = 1.0, reach: float = 1.0,
                  shell: float = 1.0, closed: bool | None = None,
-                 hidden_layers: tuple[int, ...] | None = None,
-                 graph: SheetGraph | None = None, n_jobs: int | None = -1,
+                 hidden_layers: tuple[int, ...] | None = None, n_neighbors: int | None = None,
+                 graph: SheetGraph | None = None, max_points: int = 20000,
+                 n_jobs: int | None = -1,
                  random_state: int | None = 0):
         self.chart_size = chart_size
         self.overlap = overlap
@@ -195,7 +210,9 @@ class AtlasReconstructor(BaseEstimator):
         self.shell = shell
         self.closed = closed
         self.hidden_layers = hidden_layers
+        self.n_neighbors = n_neighbors
         self.graph = graph
+        self.max_points = max_points
         self.n_jobs = n_jobs
         self.random_state = random_state
 
@@ -204,7 +221,12 @@ class AtlasReconstructor(BaseEstimator):
         points = check_points(points)
         started = time.perf_counter()
         self.timings_ = {}
-        warming = self._warm_workers()
+        workers = self._workers()
+        if len(points) > self.max_points:  # denser adds noise, not detail: charted on a subset
+            keep = np.random.default_rng(self.random_state).choice(
+                len(points), self.max_points, replace=False)
+            log.info("atlas of %d of the %d points", self.max_points, len(points))
+            points = points[np.sort(keep)]
         decomposition = ChartDecomposition(
             chart_size=self.chart_size, overlap=self.overlap, graph=self.graph,
             random_state=self.random_state).fit(points)
@@ -213,7 +235,6 @@ class AtlasReconstructor(BaseEstimator):
         self.points_ = points
         fitted: dict[int, tuple] = {}
         self.faults_ = []
-        list(warming)  # the workers are up
         queue = [(index, 0) for index in range(decomposition.n_charts_)]
         first = None  # the first fitted chart: its searched layers and K are the others'
         while queue:
@@ -221,7 +242,7 @@ class AtlasReconstructor(BaseEstimator):
             alone = first is None and self.hidden_layers is None
             batch, queue = (queue[:1], queue[1:]) if alone else (queue, [])
             members = [decomposition.chart(index) for index, _ in batch]
-            results = self._fit_charts([points[m] for m in members], first)
+            results = self._fit_charts([points[m] for m in members], first, workers)
             for (index, splits), chart, (reconstructor, fault) in zip(
                     batch, members, results, strict=True):
                 if fault is not None and splits < self.max_splits and len(
@@ -253,28 +274,46 @@ class AtlasReconstructor(BaseEstimator):
                  self.timings_["total"])
         return self
 
-    def _warm_workers(self):
-        """Start the ``n_jobs`` worker processes (importing torch and the pipeline: ~3 s for
-        two, rough 20k) while this one decomposes the cloud; a generator to wait on."""
-        n_jobs = effective_n_jobs(self.n_jobs)
-        if n_jobs == 1:
-            return iter(())
-        return Parallel(n_jobs=n_jobs, return_as="generator_unordered")(
-            delayed(_import_pipeline)() for _ in range(n_jobs))
+    def _n_jobs(self) -> int:
+        if multiprocessing.current_process().daemon:  # e.g. a Dask worker: cannot start any
+            return 1
+        return effective_n_jobs(self.n_jobs)
 
-    def _fit_charts(self, clouds: list[np.ndarray], first) -> list[tuple]:
-        """Fit the charts of ``clouds`` (each (m_i, 3)), in ``n_jobs`` processes when there are
-        several; returns (reconstructor or None, fault or None) per cloud."""
+    def _workers(self):
+        """The reusable pool of ``n_jobs`` − 1 worker processes (this process fits charts too),
+        or None for ``n_jobs`` 1. Started at once, importing torch and the pipeline (~2 s of a
+        core each), so they are ready when the cloud is decomposed."""
+        n_workers = self._n_jobs() - 1
+        if n_workers < 1:
+            return None
+        executor = get_reusable_executor(max_workers=n_workers, timeout=WORKER_IDLE,
+                                         env={name: "1" for name in _THREAD_VARIABLES})
+        for _ in range(n_workers):
+            executor.submit(_import_pipeline)
+        return executor
+
+    def _fit_charts(self, clouds: list[np.ndarray], first, workers) -> list[tuple]:
+        """Fit the charts of ``clouds`` (each (m_i, 3)); returns (reconstructor or None, fault
+        or None) per cloud. With ``workers``, they take the largest charts first and this
+        process the smallest, until the two meet."""
         params = dict(lam=self.lam, depth=self.depth, random_state=self.random_state,
-                      hidden_layers=self.hidden_layers)
+                      hidden_layers=self.hidden_layers, n_neighbors=self.n_neighbors)
         if first is not None and self.reuse_layers:
             params.update(n_neighbors=first.n_neighbors_, hidden_layers=first.hidden_layers_)
-        n_jobs = effective_n_jobs(self.n_jobs)
-        if n_jobs == 1 or len(clouds) == 1:
+        if workers is None or len(clouds) == 1:
             return [fit_chart(cloud, **params) for cloud in clouds]
-        # loky workers, reused by later fits, each with one BLAS / OpenMP thread per core
-        return Parallel(n_jobs=min(n_jobs, len(clouds)))(
-            delayed(fit_chart)(cloud, **params) for cloud in clouds)
+        largest_first = np.argsort([-len(cloud) for cloud in clouds], kind="stable")
+        futures = {i: workers.submit(fit_chart, clouds[i], **params) for i in largest_first}
+        results = {}
+        with single_threaded():  # one core here, the others the workers'
+            for i in largest_first[::-1]:
+                if not futures[i].cancel():  # a worker has it, and every larger one
+                    break
+                results[i] = fit_chart(clouds[i], **params)
+        for i, future in futures.items():
+            if i not in results:
+                results[i] = future.result()
+        return [results[i] for i in range(len(clouds))]
 
     def _join(self, decide: bool = True) -> None:
         """Join the charts' meshes into ``mesh_``. ``decide``: find again which side of each

@@ -241,7 +241,8 @@ class AdaptiveMLP(BaseEstimator):
             else:
                 self.hidden_layers_, net = self._grow(tensors, generator, n_in, n_out)
                 self.surface_map_ = OnnxSurfaceMap(self._export(net))
-        self._searched = (net, tensors, generator, time.perf_counter() - started)
+        self.timings_ = {"search": time.perf_counter() - started}
+        self._searched = (net, tensors, generator, self.timings_["search"])
         return self
 
     def finish(self) -> AdaptiveMLP:
@@ -263,8 +264,13 @@ class AdaptiveMLP(BaseEstimator):
         self.surface_map_ = OnnxSurfaceMap(self._export(net))
         self.timings_ = {"search": searching, "final fits": trained - started,
                          "export": time.perf_counter() - trained}
-        log.info("MLP chose hidden layers %s after %d configurations (%.1f s)",
-                 self.hidden_layers_, len(self.history_), searching + time.perf_counter() - started)
+        seconds = searching + time.perf_counter() - started
+        if self.hidden_layers is None:
+            log.info("MLP chose hidden layers %s after %d configurations (%.1f s)",
+                     self.hidden_layers_, len(self.history_), seconds)
+        else:
+            log.info("MLP %s trained (%d final fits, %.1f s)", self.hidden_layers_,
+                     len(self.history_), seconds)
         return self
 
     def _grow(self, tensors, generator, n_in, n_out) -> tuple:

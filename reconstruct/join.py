@@ -144,15 +144,32 @@ def exterior_grid(samples, voxel: float, band: float = 3.0, normals=None, pad=No
     if normals is not None and pieces.max() > 0:
         enclosed = free & ~np.isin(pieces, outside)
         if enclosed.any():
-            nodes = np.argwhere(enclosed)
+            nodes, label = _voters(np.argwhere(enclosed), pieces[enclosed])
             nearest = cKDTree(samples).query(origin + voxel * nodes)[1]
             front = np.einsum("gi,gi->g", origin + voxel * nodes - samples[nearest],
                               np.asarray(normals, float)[nearest]) > 0
-            label = pieces[enclosed]
             share = np.bincount(label, front, minlength=pieces.max() + 1) / np.maximum(
                 np.bincount(label, minlength=pieces.max() + 1), 1)
             outside = np.union1d(outside, np.flatnonzero(share > 0.5))
     return origin, shape, np.isin(pieces, outside) & free, free
+
+
+#: Nodes of one enclosed pocket that vote on its side (`exterior_grid`), evenly taken: its share
+#: in front to about ±1 %. All of a torus's inside (181,604 nodes) took 0.8 s of a 1.9 s re-mesh.
+_VOTERS = 4096
+
+
+def _voters(nodes: np.ndarray, label: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """At most `_VOTERS` of the ``nodes`` (g, 3) of each pocket ``label`` (g,), every k-th in
+    grid order; returns (nodes, label) of those."""
+    counts = np.bincount(label)
+    order = np.argsort(label, kind="stable")
+    first = np.cumsum(counts) - counts
+    rank = np.arange(len(order)) - first[label[order]]
+    step = -(-counts // _VOTERS)
+    keep = order[rank % step[label[order]] == 0]
+    keep.sort()
+    return nodes[keep], label[keep]
 
 
 def exterior_votes(chart_samples_, chart_normals, voxel: float, band: float = 3.0):

@@ -246,13 +246,15 @@ def _children(pid="self") -> list[str]:
 
 
 def peak_memory_gb(with_workers: bool = False) -> float:
-    """This process's peak resident memory; ``with_workers``: plus every live child's peak (the
-    atlas's chart workers), an upper bound since their peaks need not coincide."""
+    """This process's peak resident memory; ``with_workers``: plus every live child's peak and
+    the largest ended child's (the atlas's chart workers, shut down when its fit ends): an
+    upper bound, since their peaks need not coincide."""
     kib = _peak_kib()
     if not kib:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
     if with_workers:
         kib += sum(_peak_kib(child) for child in _children())
+        kib += resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss  # KiB on Linux
     return kib / 2**20
 
 

@@ -4,11 +4,12 @@ joined into one mesh.
 `AtlasReconstructor.fit` splits the cloud into overlapping disc-like charts
 (`reconstruct.charts` on the sheet-respecting graph of `reconstruct.sheet_graph`), fits each
 with the paper's pipeline (embedding → adaptive MLP → multi-depth boundary → spline → mesh →
-ONNX map; the first chart's searched layer widths and K, or the widths a one-chart search of
-the same cloud found, are reused by the others, which then train without a search, in
-``n_jobs`` worker processes), and accepts a chart only when it is faithful: its mesh leaves at most
-`UNEXPLAINED_LIMIT` of its points unexplained and does not fold over (`fold_share`); otherwise
-the chart is split and fitted again (at most ``max_splits`` times along one line of descent).
+ONNX map; the first chart's searched layer widths and K, or those of a one-chart fit of the
+same cloud, are reused by the others, which then train without a search, in ``n_jobs``
+processes: `reconstruct.chart_fit`), and accepts a chart only when it is faithful: its mesh
+leaves at most `UNEXPLAINED_LIMIT` of its points unexplained and does not fold over
+(`fold_share`); otherwise the chart is split and fitted again (at most ``max_splits`` times
+along one line of descent).
 The accepted charts' meshes, trimmed to a partition of the cloud, oriented alike (along their
 overlaps, and by which side of each is outside: `reconstruct.join.exterior_votes`) and joined by
 `reconstruct.join.implicit_mesh`, give ``mesh_``: when the charts enclose a volume, its
@@ -26,7 +27,6 @@ carry the charts' maps, the partition, the signs and the join's grid to another 
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import os
 import time
 import warnings
@@ -35,19 +35,15 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from joblib import effective_n_jobs
-from joblib.externals.loky import get_reusable_executor
 from sklearn.base import BaseEstimator
 
+from .chart_fit import chart_workers, fit_charts
 from .charts import ChartDecomposition
 from .errors import FitError, InvalidInputError, NotFittedError, ReconstructionWarning
-from .faithfulness import FOLD_LIMIT, UNEXPLAINED_LIMIT, fold_share
 from .io import one_line, read_state, write_state
 from .join import chart_samples, exterior_votes, implicit_mesh, orient_charts, thin_shell
-from .meshing import default_spacing
 from .sdf_grid import SparseSDF
 from .sheet_graph import SheetGraph
-from .threads import single_threaded
 from .validation import check_points
 
 log = logging.getLogger(__name__)
@@ -55,9 +51,6 @@ log = logging.getLogger(__name__)
 ATLAS_FORMAT = "scanstation-atlas/1"
 #: Parameters of the fit only (a loaded atlas re-meshes, it does not fit): not saved.
 _FIT_ONLY_PARAMS = ("graph", "n_jobs", "hidden_layers", "n_neighbors")
-#: Boundary depths whose samples `fit` computes (and `state` saves) for every chart, so a
-#: fitted or loaded atlas re-meshes to another of them without sampling its boundaries first.
-SAVED_DEPTHS = (1, 2, 3)
 
 #: A chart faces out of the object when its exterior vote (`join.exterior_votes`) is this clear.
 VOTE_LIMIT = 0.5
@@ -65,77 +58,9 @@ VOTE_LIMIT = 0.5
 UNCHARTED = 1.0
 #: The cloud is closed when charts facing clearly out hold this share of the join's samples.
 CLOSED_SHARE = 0.5
-#: Charts of more points than this are embedded by landmark Isomap: full Isomap's all-pairs
-#: geodesics took a third of an atlas's fit (rough 20k, 47 charts: 9.5 of 27 s). On 500-3,000
-#: point terrains landmark Isomap ran 4-28x faster with the same residual variance (to 1e-4).
-LANDMARK_CHARTS = 400
-#: Fresh starts of a chart's final fits beside its first (`AdaptiveMLP.final_starts`): the
-#: join averages overlapping charts anyway. Rough 20k (layers (15, 15), 47 charts): Chamfer
-#: 0.00653 with one, 0.00652 with two; relief 20k 0.5357 against 0.5372; fits 8.3 s against 10.6.
-CHART_FINAL_STARTS = 1
-_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 #: Charts re-meshed at once, in threads (ONNX Runtime, GEOS and qhull release the GIL): torus
 #: 22k, 37 charts, 2 cores: 266 -> 187 ms.
 REMESH_THREADS = 2
-
-
-def _import_pipeline() -> None:
-    from . import pipeline  # noqa: F401
-    from .networks import load_torch
-
-    load_torch()
-
-
-def fit_chart(points, lam: float, depth: int, random_state, n_neighbors: int | None = None,
-              hidden_layers: tuple[int, ...] | None = None) -> tuple:
-    """Fit one chart (m, 3) with the paper's pipeline: a search, or the given ``hidden_layers``
-    and K. Returns (fitted `SurfaceReconstructor` or None, fault or None): the fault says why
-    the chart is not faithful (`faithfulness`) or could not be fitted."""
-    from .mlp import AdaptiveMLP
-    from .pipeline import SurfaceReconstructor
-
-    params = dict(lam=lam, depth=depth, random_state=random_state, atlas="never",
-                  embedding="landmark" if len(points) > LANDMARK_CHARTS else "auto",
-                  n_neighbors=n_neighbors)
-    if hidden_layers is not None:
-        params.update(mlp=AdaptiveMLP(
-            hidden_layers=hidden_layers, final_starts=CHART_FINAL_STARTS,
-            random_state=random_state))
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ReconstructionWarning)
-            reconstructor = SurfaceReconstructor(**params).fit(points)
-    except Exception as exc:  # a chart the method cannot fit is split, never hidden
-        log.info("a chart of %d points failed to fit: %s", len(points), exc)
-        return None, f"fit failed ({one_line(exc)})"
-    faults = []
-    if reconstructor.unexplained_ > UNEXPLAINED_LIMIT:
-        faults.append(f"{100 * reconstructor.unexplained_:.0f} % of its points unexplained")
-    folds = fold_share(reconstructor.mesh_)
-    if folds > FOLD_LIMIT:
-        faults.append(f"mesh folds over ({100 * folds:.1f} % of its edges)")
-    reconstructor.fold_share_ = folds
-    ready_to_remesh(reconstructor)
-    return reconstructor, ("; ".join(faults) or None)
-
-
-def ready_to_remesh(chart) -> None:
-    """Pin a fitted chart's grid spacing (its ``grid_spacing``) and mesh it again on the lattice
-    of that spacing, where a new outline leaves the interior be (the join's samples stay put);
-    and sample its boundary at each of `SAVED_DEPTHS` (cached, saved with its state), so a
-    re-mesh to one of those depths need not sample first (a first depth change took 793 ms
-    against 277 for a new λ, torus 22k, 35 charts)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ReconstructionWarning)  # said by the fit already
-        if chart.grid_spacing is None:
-            chart.remesh(grid_spacing=default_spacing(chart.outline_, len(chart.embedding_)))
-    depth = chart.depth
-    try:
-        for saved_depth in SAVED_DEPTHS:
-            chart.depth = saved_depth
-            chart._boundary_points()
-    finally:
-        chart.depth = depth
 
 
 class AtlasReconstructor(BaseEstimator):
@@ -219,7 +144,7 @@ class AtlasReconstructor(BaseEstimator):
         points = check_points(points)
         started = time.perf_counter()
         self.timings_ = {}
-        workers = self._workers()
+        workers = chart_workers(self.n_jobs)
         try:
             points, fitted = self._fit_all(points, workers, started)
         finally:  # no worker outlives the fit: a process exiting joins its children first
@@ -283,46 +208,14 @@ class AtlasReconstructor(BaseEstimator):
                      decomposition.n_charts_, time.perf_counter() - started)
         return points, fitted
 
-    def _n_jobs(self) -> int:
-        if multiprocessing.current_process().daemon:  # e.g. a Dask worker: cannot start any
-            return 1
-        return effective_n_jobs(self.n_jobs)
-
-    def _workers(self):
-        """A pool of ``n_jobs`` − 1 worker processes (this process fits charts too), or None for
-        ``n_jobs`` 1. Started at once, importing torch and the pipeline (~2 s of a core each),
-        so they are ready when the cloud is decomposed; `fit` shuts them down when done."""
-        n_workers = self._n_jobs() - 1
-        if n_workers < 1:
-            return None
-        executor = get_reusable_executor(max_workers=n_workers,
-                                         env={name: "1" for name in _THREAD_VARIABLES})
-        for _ in range(n_workers):
-            executor.submit(_import_pipeline)
-        return executor
-
     def _fit_charts(self, clouds: list[np.ndarray], first, workers) -> list[tuple]:
-        """Fit the charts of ``clouds`` (each (m_i, 3)); returns (reconstructor or None, fault
-        or None) per cloud. With ``workers``, they take the largest charts first and this
-        process the smallest, until the two meet."""
+        """Fit the charts of ``clouds`` (each (m_i, 3)) with the given layers and K, or the
+        first chart's (`chart_fit.fit_charts`)."""
         params = dict(lam=self.lam, depth=self.depth, random_state=self.random_state,
                       hidden_layers=self.hidden_layers, n_neighbors=self.n_neighbors)
         if first is not None and self.reuse_layers:
             params.update(n_neighbors=first.n_neighbors_, hidden_layers=first.hidden_layers_)
-        if workers is None or len(clouds) == 1:
-            return [fit_chart(cloud, **params) for cloud in clouds]
-        largest_first = np.argsort([-len(cloud) for cloud in clouds], kind="stable")
-        futures = {i: workers.submit(fit_chart, clouds[i], **params) for i in largest_first}
-        results = {}
-        with single_threaded():  # one core here, the others the workers'
-            for i in largest_first[::-1]:
-                if not futures[i].cancel():  # a worker has it, and every larger one
-                    break
-                results[i] = fit_chart(clouds[i], **params)
-        for i, future in futures.items():
-            if i not in results:
-                results[i] = future.result()
-        return [results[i] for i in range(len(clouds))]
+        return fit_charts(clouds, workers, **params)
 
     def _join(self, decide: bool = True) -> None:
         """Join the charts' meshes into ``mesh_``. ``decide``: find again which side of each

@@ -73,11 +73,21 @@ def noise_neighbours(n_points: int) -> int:
     return int(np.clip(n_points // 400, _K, _K_DENSE))
 
 
+def explained_distance(points, factor: float = NOISE_FACTOR, k: int | None = None) -> float:
+    """How far from a mesh a point of the cloud ``points`` (n, 3) may lie and still be explained:
+    ``factor`` · the cloud's median noise + its median spacing (`local_noise` of ``k``
+    neighbours, default `noise_neighbours`, around at most 4,000 evenly taken points)."""
+    points = np.asarray(points, dtype=np.float64)
+    k = noise_neighbours(len(points)) if k is None else k
+    noise, spacing = local_noise(points, k, at=points[:: -(-len(points) // _SAMPLES)])
+    return float(factor * np.median(noise) + np.median(spacing))
+
+
 def unexplained_fraction(mesh, points, factor: float = NOISE_FACTOR,
-                         k: int | None = None) -> float:
-    """Share of ``points`` (n, 3) farther from ``mesh`` than ``factor`` · noise + spacing,
-    with the cloud's median noise and spacing (`local_noise` of ``k`` neighbours; default
-    `noise_neighbours`). 0 for a faithful mesh. Measured on at most 4,000 evenly taken points
+                         k: int | None = None, threshold: float | None = None) -> float:
+    """Share of ``points`` (n, 3) farther from ``mesh`` than ``threshold`` (default
+    `explained_distance` of the points with ``factor`` and ``k``; pass it to measure several
+    meshes of one cloud). 0 for a faithful mesh. Measured on at most 4,000 evenly taken points
     (a share known to ±1 %).
 
     The distance to the nearest vertex bounds the distance to the surface within the longest
@@ -86,10 +96,9 @@ def unexplained_fraction(mesh, points, factor: float = NOISE_FACTOR,
     points = np.asarray(points, dtype=np.float64)
     if len(points) == 0 or len(mesh.faces) == 0:
         return 1.0 if len(points) else 0.0
-    cloud, points = points, points[:: -(-len(points) // _SAMPLES)]  # evenly, at most _SAMPLES
-    k = noise_neighbours(len(cloud)) if k is None else k
-    noise, spacing = local_noise(cloud, k, at=points)
-    threshold = factor * np.median(noise) + np.median(spacing)
+    if threshold is None:
+        threshold = explained_distance(points, factor, k)
+    points = points[:: -(-len(points) // _SAMPLES)]  # evenly, at most _SAMPLES
     to_vertex = cKDTree(mesh.vertices).query(points)[0]
     edges = mesh.vertices[mesh.edges_unique]
     longest = float(np.linalg.norm(edges[:, 0] - edges[:, 1], axis=1).max())

@@ -230,6 +230,8 @@ class AdaptiveMLP(BaseEstimator):
         chart is the wrong model, `SurfaceReconstructor`). `finish` runs the final fits."""
         self._check_params()
         started = time.perf_counter()
+        for name in ("surface_map_", "torch_model_"):  # of an earlier fit: not this one's
+            self.__dict__.pop(name, None)
         rng, generator = self._random()
         tensors = self._samples(uv, xyz, rng, new_normalisation=True)
         n_in, n_out = (t.shape[1] for t in tensors["train"])

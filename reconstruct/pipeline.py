@@ -30,6 +30,7 @@ from .faithfulness import (
     BRIDGE_LIMIT,
     UNEXPLAINED_LIMIT,
     bridged_share,
+    explained_distance,
     neighbour_preservation,
     unexplained_fraction,
 )
@@ -194,15 +195,17 @@ class SurfaceReconstructor(BaseEstimator):
         self.embedding_ = uv
         self.points_ = fitted
         self._boundary_cache = {}
+        explained = None  # the distance that explains a point: measured once, if early
         if warm_start is None:
             mlp = self._new_mlp().search(uv, fitted)
-            if self.atlas == "auto" and hasattr(mlp, "surface_map_"):  # the searched net's mesh
+            if self.atlas == "auto" and mlp.hidden_layers is None:  # the searched net's mesh
                 self.surface_map_ = mlp.surface_map_
                 self.timings_.update(mlp.timings_)
                 self.remesh()
-                reason = self._atlas_reason(points, unexplained_fraction(self.mesh_, fitted),
-                                            mlp.hidden_layers_, embedding.n_neighbors_,
-                                            limit=2 * UNEXPLAINED_LIMIT)
+                explained = explained_distance(fitted)
+                reason = self._atlas_reason(
+                    points, unexplained_fraction(self.mesh_, fitted, threshold=explained),
+                    mlp.hidden_layers_, embedding.n_neighbors_, limit=2 * UNEXPLAINED_LIMIT)
                 if reason is not None:  # plainly one chart cannot hold it: no final fits
                     return self._fit_atlas(*reason)
             mlp.finish()
@@ -219,7 +222,7 @@ class SurfaceReconstructor(BaseEstimator):
         self.hidden_layers_ = tuple(mlp.hidden_layers_)
         self.timings_.update(getattr(mlp, "timings_", {}))
         self.remesh()
-        self.unexplained_ = unexplained_fraction(self.mesh_, self.points_)
+        self.unexplained_ = unexplained_fraction(self.mesh_, self.points_, threshold=explained)
         if warm_start is None and self.atlas == "auto":
             reason = self._atlas_reason(points, self.unexplained_, self.hidden_layers_,
                                         self.n_neighbors_)
@@ -263,7 +266,7 @@ class SurfaceReconstructor(BaseEstimator):
         from .atlas import AtlasReconstructor
 
         log.info("fitting an atlas of charts: %s", reason)
-        one_chart = self.__dict__.get("timings_", {})  # what it took to find one is not enough
+        one_chart = self.timings_  # what it took to find that one chart is not enough
         for name in [n for n in self.__dict__ if n.endswith("_") and not n.startswith("_")]:
             del self.__dict__[name]  # nothing of an earlier one-chart fit is left behind
         atlas = AtlasReconstructor(lam=self.lam, depth=self.depth, hidden_layers=hidden_layers,

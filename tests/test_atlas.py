@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from reconstruct.atlas import AtlasReconstructor, fold_share
+from reconstruct.atlas import AtlasReconstructor
 from reconstruct.errors import (
     FitError,
     InvalidInputError,
     NotFittedError,
     ReconstructionWarning,
 )
+from reconstruct.faithfulness import fold_share
 from reconstruct.join import close_small_holes, implicit_mesh
 from reconstruct.metrics import distance_to_surface, surface_report
 from reconstruct.pipeline import SurfaceReconstructor
@@ -121,8 +122,19 @@ def test_no_chart_worker_outlives_the_fit():
     assert multiprocessing.active_children() == []
 
 
+def test_an_atlas_fit_leaves_other_process_pools_be():
+    """Its workers are its own: joblib's (scikit-learn's) shared pool, or a second atlas
+    fitted in another thread, keeps working when this fit ends."""
+    from joblib.externals.loky import get_reusable_executor
+
+    shared = get_reusable_executor(max_workers=1)
+    AtlasReconstructor(chart_size=500, n_jobs=2).fit(holed_patch(n=1200))
+    assert shared.submit(int, "7").result() == 7
+    shared.shutdown(wait=True)
+
+
 def test_an_atlas_of_no_fitted_chart_says_why(monkeypatch):
-    monkeypatch.setattr("reconstruct.atlas.fit_chart",
+    monkeypatch.setattr("reconstruct.chart_fit.fit_chart",
                         lambda points, **_: (None, "fit failed (no luck)"))
     with pytest.raises(FitError, match="no chart of the atlas could be fitted: .*no luck"):
         AtlasReconstructor(chart_size=1000, n_jobs=1).fit(sphere_cloud())

@@ -37,7 +37,7 @@ import numpy as np
 import trimesh
 from sklearn.base import BaseEstimator
 
-from .chart_fit import chart_workers, fit_charts
+from .chart_fit import chart_workers, fit_charts, n_chart_workers, warm_up
 from .charts import ChartDecomposition
 from .errors import FitError, InvalidInputError, NotFittedError, ReconstructionWarning
 from .io import one_line, read_state, write_state
@@ -139,14 +139,41 @@ class AtlasReconstructor(BaseEstimator):
         self.n_jobs = n_jobs
         self.random_state = random_state
 
+    def start(self, points) -> AtlasReconstructor:
+        """Begin a `fit` of ``points`` (n, 3) in the background, while the caller does other
+        work: the chart workers start and one of them decomposes the cloud. A later
+        ``fit(points)`` of the same array takes both up; `cancel` drops them. Without workers
+        (``n_jobs=1``, a daemonic process) nothing starts. Rough 20k: the decomposition
+        (2.1 s) runs while `SurfaceReconstructor` searches one chart's net, which decides
+        whether the atlas is needed."""
+        self.cancel()
+        workers = chart_workers(self.n_jobs, warm=False)
+        if workers is not None:
+            charted = self._charted(check_points(points))
+            decomposition = workers.submit(self._decomposition().fit, charted)
+            warm_up(workers, n_chart_workers(self.n_jobs))  # the decomposition needs no torch
+            self._started = (points, workers, decomposition)
+        return self
+
+    def cancel(self) -> None:
+        """Drop what `start` began: its workers shut down once done with what they run."""
+        started = self.__dict__.pop("_started", None)
+        if started is not None:
+            started[2].cancel()
+            started[1].shutdown(wait=True)
+
     def fit(self, points, y=None) -> AtlasReconstructor:
         """points : (n, 3) float. Returns self with ``mesh_`` set."""
+        started_with, workers, decomposition = self.__dict__.pop("_started", (None,) * 3)
+        if started_with is not points:  # started for other points: only its workers serve
+            decomposition = None
         points = check_points(points)
         started = time.perf_counter()
         self.timings_ = {}
-        workers = chart_workers(self.n_jobs)
+        if workers is None:
+            workers = chart_workers(self.n_jobs)
         try:
-            points, fitted = self._fit_all(points, workers, started)
+            points, fitted = self._fit_all(points, workers, started, decomposition)
         finally:  # no worker outlives the fit: a process exiting joins its children first
             if workers is not None:
                 workers.shutdown(wait=True)
@@ -165,18 +192,28 @@ class AtlasReconstructor(BaseEstimator):
                  self.timings_["total"])
         return self
 
-    def _fit_all(self, points, workers, started) -> tuple[np.ndarray, dict]:
-        """Decompose ``points`` (a subset of them beyond ``max_points``) and fit every chart,
-        splitting unfaithful ones. Returns (the points charted, {chart: (reconstructor or
-        None, its point indices)})."""
-        if len(points) > self.max_points:  # denser adds noise, not detail: charted on a subset
-            keep = np.random.default_rng(self.random_state).choice(
-                len(points), self.max_points, replace=False)
-            log.info("atlas of %d of the %d points", self.max_points, len(points))
-            points = points[np.sort(keep)]
-        decomposition = ChartDecomposition(
-            chart_size=self.chart_size, overlap=self.overlap, graph=self.graph,
-            random_state=self.random_state).fit(points)
+    def _charted(self, points: np.ndarray) -> np.ndarray:
+        """The points (m, 3) the atlas charts: all, or a random ``max_points`` of a denser
+        cloud (denser adds noise, not detail)."""
+        if len(points) <= self.max_points:
+            return points
+        keep = np.random.default_rng(self.random_state).choice(
+            len(points), self.max_points, replace=False)
+        log.info("atlas of %d of the %d points", self.max_points, len(points))
+        return points[np.sort(keep)]
+
+    def _decomposition(self) -> ChartDecomposition:
+        return ChartDecomposition(chart_size=self.chart_size, overlap=self.overlap,
+                                  graph=self.graph, random_state=self.random_state)
+
+    def _fit_all(self, points, workers, started, decomposition=None) -> tuple[np.ndarray, dict]:
+        """Decompose ``points`` (a subset of them beyond ``max_points``; or take the
+        ``decomposition`` future `start` submitted) and fit every chart, splitting unfaithful
+        ones. Returns (the points charted, {chart: (reconstructor or None, its point
+        indices)})."""
+        points = self._charted(points)
+        decomposition = (self._decomposition().fit(points) if decomposition is None
+                         else decomposition.result())
         self.timings_["charts"] = time.perf_counter() - started
         self.decomposition_ = decomposition
         self.points_ = points

@@ -97,23 +97,33 @@ def ready_to_remesh(chart) -> None:
         chart.depth = depth
 
 
-def chart_workers(n_jobs: int | None):
+def chart_workers(n_jobs: int | None, warm: bool = True):
     """A pool of ``n_jobs`` − 1 worker processes of its own (joblib's convention: -1 every
     core; the calling process fits charts too), or None for one. Not loky's shared reusable
     pool: shutting that down stopped joblib's, or a second atlas's fitted in another thread.
     Started at once, importing torch and the pipeline (~2 s of a core each), so they are ready
-    when the cloud is decomposed; the caller shuts them down when done (a process exiting joins
-    its children first). A daemonic process (a Dask worker) cannot start any."""
-    if multiprocessing.current_process().daemon:
-        return None
-    n_workers = effective_n_jobs(n_jobs) - 1
+    when the cloud is decomposed (``warm=False``: not yet, `warm_up`); the caller shuts them
+    down when done (a process exiting joins its children first). A daemonic process (a Dask
+    worker) cannot start any."""
+    n_workers = n_chart_workers(n_jobs)
     if n_workers < 1:
         return None
     executor = ProcessPoolExecutor(max_workers=n_workers,
                                    env={name: "1" for name in _THREAD_VARIABLES})
-    for _ in range(n_workers):
-        executor.submit(_import_pipeline)
+    if warm:
+        warm_up(executor, n_workers)
     return executor
+
+
+def n_chart_workers(n_jobs: int | None) -> int:
+    """Worker processes `chart_workers` starts for ``n_jobs``: none in a daemonic process."""
+    return 0 if multiprocessing.current_process().daemon else effective_n_jobs(n_jobs) - 1
+
+
+def warm_up(workers, n_workers: int) -> None:
+    """Have each of the ``n_workers`` ``workers`` import torch and the pipeline."""
+    for _ in range(n_workers):
+        workers.submit(_import_pipeline)
 
 
 def fit_charts(clouds: list[np.ndarray], workers=None, **params) -> list[tuple]:

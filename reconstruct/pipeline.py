@@ -61,6 +61,10 @@ STATE_FORMAT = "scanstation-reconstruction/1"
 #: (discs 0.51–0.61, closed 0.28–0.41).
 ATLAS_RESIDUAL = 0.015
 ATLAS_MODES = ("auto", "never", "always")
+#: From this many points, an ``atlas="auto"`` fit decomposes the cloud for an atlas on a spare
+#: core while it searches one chart's net (`AtlasReconstructor.start`), in case the searched
+#: mesh shows that one chart cannot hold it. Rough 20k: the 2.1 s decomposition is then hidden.
+SPECULATE_FROM = 10000
 _MESH_PARAMS = ("lam", "depth", "n_corners", "boundary", "grid_spacing", "variance", "extend")
 #: Training-only parameters: not saved (a loaded reconstruction re-meshes, it does not train).
 _TRAINING_PARAMS = ("mlp", "fine_tune", "warm_tolerance", "atlas")
@@ -195,6 +199,19 @@ class SurfaceReconstructor(BaseEstimator):
         self.embedding_ = uv
         self.points_ = fitted
         self._boundary_cache = {}
+        spare = None  # an atlas begun on a spare core, in case one chart cannot hold the cloud
+        if warm_start is None and self.atlas == "auto" and len(fitted) >= SPECULATE_FROM:
+            spare = self._new_atlas().start(fitted)
+        try:
+            return self._fit_one_chart(points, fitted, uv, embedding, warm_start, spare,
+                                       started)
+        finally:
+            if spare is not None:
+                spare.cancel()  # nothing, when the atlas took it up
+
+    def _fit_one_chart(self, points, fitted, uv, embedding, warm_start, spare, started):
+        """The rest of `fit` once the cloud is embedded: search, final fits, mesh, checks;
+        or the atlas (``spare``: begun by `AtlasReconstructor.start`) when they say so."""
         explained = None  # the distance that explains a point: measured once, if early
         if warm_start is None:
             mlp = self._new_mlp().search(uv, fitted)
@@ -207,7 +224,7 @@ class SurfaceReconstructor(BaseEstimator):
                     points, unexplained_fraction(self.mesh_, fitted, threshold=explained),
                     mlp.hidden_layers_, embedding.n_neighbors_, limit=2 * UNEXPLAINED_LIMIT)
                 if reason is not None:  # plainly one chart cannot hold it: no final fits
-                    return self._fit_atlas(*reason)
+                    return self._fit_atlas(*reason, atlas=spare)
             mlp.finish()
         else:
             uv = align_to(uv, fitted, warm_start.embedding_, warm_start.points_,
@@ -227,7 +244,7 @@ class SurfaceReconstructor(BaseEstimator):
             reason = self._atlas_reason(points, self.unexplained_, self.hidden_layers_,
                                         self.n_neighbors_)
             if reason is not None:
-                return self._fit_atlas(*reason)
+                return self._fit_atlas(*reason, atlas=spare)
         self._check_faithful()
         log.info(
             "reconstructed %d points in %.1f s: %s, K=%d, layers %s, %d vertices, %d faces",
@@ -259,19 +276,22 @@ class SurfaceReconstructor(BaseEstimator):
             return self.points_, "one chart's mesh spans holes in the data", layers, k
         return None
 
-    def _fit_atlas(self, points, reason: str, hidden_layers: tuple[int, ...] | None = None,
-                   n_neighbors: int | None = None) -> SurfaceReconstructor:
-        """Fit an atlas of charts (`reconstruct.atlas`; ``hidden_layers``: what a one-chart
-        search chose) and take its mesh; warn in one line when the atlas fails its checks."""
+    def _new_atlas(self):
         from .atlas import AtlasReconstructor
 
+        return AtlasReconstructor(lam=self.lam, depth=self.depth, random_state=self.random_state)
+
+    def _fit_atlas(self, points, reason: str, hidden_layers: tuple[int, ...] | None = None,
+                   n_neighbors: int | None = None, atlas=None) -> SurfaceReconstructor:
+        """Fit an atlas of charts (`reconstruct.atlas`; ``hidden_layers``: what a one-chart
+        search chose; ``atlas``: one begun with `AtlasReconstructor.start`) and take its mesh;
+        warn in one line when the atlas fails its checks."""
         log.info("fitting an atlas of charts: %s", reason)
         one_chart = self.timings_  # what it took to find that one chart is not enough
         for name in [n for n in self.__dict__ if n.endswith("_") and not n.startswith("_")]:
             del self.__dict__[name]  # nothing of an earlier one-chart fit is left behind
-        atlas = AtlasReconstructor(lam=self.lam, depth=self.depth, hidden_layers=hidden_layers,
-                                   n_neighbors=n_neighbors,
-                                   random_state=self.random_state).fit(points)
+        atlas = (self._new_atlas() if atlas is None else atlas).set_params(
+            hidden_layers=hidden_layers, n_neighbors=n_neighbors).fit(points)
         self.atlas_ = atlas
         self.atlas_reason_ = reason
         self.mesh_ = atlas.mesh_

@@ -218,3 +218,46 @@ def test_the_join_can_be_told_to_stay_open(sphere_atlas):
         atlas.set_params(closed=None)
         atlas._join()
     assert atlas.closed_ and atlas.watertight_
+
+
+def test_a_started_atlas_fits_the_same_mesh_and_leaves_no_worker():
+    points = holed_patch(n=1500)
+    plain = AtlasReconstructor(chart_size=500, n_jobs=1).fit(points)
+    started = AtlasReconstructor(chart_size=500, n_jobs=2).start(points)
+    started.fit(points)
+    np.testing.assert_array_equal(plain.mesh_.vertices, started.mesh_.vertices)
+    np.testing.assert_array_equal(plain.mesh_.faces, started.mesh_.faces)
+    assert multiprocessing.active_children() == []
+    # started for other points: those are decomposed afresh, and the same mesh comes out
+    other = AtlasReconstructor(chart_size=500, n_jobs=2).start(points[::-1]).fit(points)
+    np.testing.assert_array_equal(plain.mesh_.faces, other.mesh_.faces)
+    assert multiprocessing.active_children() == []
+
+
+def test_a_cancelled_start_leaves_no_worker():
+    atlas = AtlasReconstructor(chart_size=500, n_jobs=2).start(holed_patch(n=1500))
+    atlas.cancel()
+    atlas.cancel()  # twice: nothing left to drop
+    assert multiprocessing.active_children() == []
+    assert not hasattr(atlas, "mesh_")
+
+
+def test_the_atlas_begun_beside_a_one_chart_search_gives_the_same_mesh(monkeypatch):
+    """SurfaceReconstructor decomposes a large cloud on a spare core while it searches one
+    chart's net; the atlas it turns to takes that up, and a one-chart fit drops it."""
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-1, 1, (6000, 2))
+    xy = xy[np.linalg.norm(xy, axis=1) > 0.35][:3000]
+    points = np.c_[xy, 0.2 * np.sin(2 * xy[:, 0]) + rng.normal(0, 0.01, len(xy))]
+    params = dict(max_layers=1, max_neurons=6)
+    monkeypatch.setattr("reconstruct.pipeline.SPECULATE_FROM", 10**9)
+    alone = SurfaceReconstructor(**params).fit(points)
+    monkeypatch.setattr("reconstruct.pipeline.SPECULATE_FROM", 1000)
+    begun = SurfaceReconstructor(**params).fit(points)
+    assert begun.atlas_reason_ == alone.atlas_reason_ == "one chart's mesh spans holes in the data"
+    np.testing.assert_array_equal(alone.mesh_.faces, begun.mesh_.faces)
+    np.testing.assert_array_equal(alone.mesh_.vertices, begun.mesh_.vertices)
+    assert multiprocessing.active_children() == []
+    one_chart = SurfaceReconstructor(**params).fit(holed_patch(n=1500, hole=0.0))
+    assert not hasattr(one_chart, "atlas_")
+    assert multiprocessing.active_children() == []

@@ -141,11 +141,11 @@ class AtlasReconstructor(BaseEstimator):
 
     def start(self, points) -> AtlasReconstructor:
         """Begin a `fit` of ``points`` (n, 3) in the background, while the caller does other
-        work: the chart workers start and one of them decomposes the cloud. A later
-        ``fit(points)`` of the same array takes both up; `cancel` drops them. Without workers
-        (``n_jobs=1``, a daemonic process) nothing starts. Rough 20k: the decomposition
-        (2.1 s) runs while `SurfaceReconstructor` searches one chart's net, which decides
-        whether the atlas is needed."""
+        work: the chart workers start and one of them decomposes the cloud (then imports
+        torch). A later ``fit(points)`` of the same array takes both up; `cancel` drops
+        them. Without workers (``n_jobs=1``, a daemonic process) nothing starts. Rough 20k:
+        the decomposition (2.1 s) runs while `SurfaceReconstructor` searches one chart's net,
+        which decides whether the atlas is needed."""
         self.cancel()
         workers = chart_workers(self.n_jobs, warm=False)
         if workers is not None:
@@ -156,11 +156,12 @@ class AtlasReconstructor(BaseEstimator):
         return self
 
     def cancel(self) -> None:
-        """Drop what `start` began: its workers shut down once done with what they run."""
+        """Drop what `start` began: its workers are stopped, whatever they run (waiting for
+        their torch import cost a 20k sphere cap's one-chart fit 2.2 s)."""
         started = self.__dict__.pop("_started", None)
         if started is not None:
             started[2].cancel()
-            started[1].shutdown(wait=True)
+            started[1].shutdown(wait=True, kill_workers=True)
 
     def fit(self, points, y=None) -> AtlasReconstructor:
         """points : (n, 3) float. Returns self with ``mesh_`` set."""

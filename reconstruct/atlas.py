@@ -59,13 +59,19 @@ VOTE_LIMIT = 0.5
 #: Input points farther than this (median spacings) from every joined sample are uncharted.
 UNCHARTED = 1.0
 #: A chart facing out is a thin part charted on one face when uncharted points lie behind this
-#: share of its samples (`AtlasReconstructor._behind_share`): its far face, left out by the
+#: share of its samples (`AtlasReconstructor._behind_share`; seed 0 / 1 share 0.04: sheets F
+#: 0.980 / 0.964, 0.09: 0.978 / 0.956): its far face, left out by the
 #: sheet graph (points between two sheets join neither), faces a gap. bench.atlas 20k seed 0
 #: (1 for sheets): the plates' charts 0.06-0.14, no chart of mug, figurine, hook, torus over
-#: 0.051 (figurine's curled ears, already shells, up to 0.09).
+#: 0.051 (figurine's curled ears, already shells, up to 0.09), nor at seed 1 (figurine 0.049,
+#: mug 0.049 beside one small chart: `THIN_POINTS`).
 THIN_SHARE = 0.06
 #: Behind a sample: between these many voxels deep (the noise's near side is no evidence).
 THIN_DEPTH = (1.0, 3.0)
+#: ... and at least this many uncharted points behind it (a small chart's share is noise: mug
+#: 20k seed 1, a 132-point chart at 0.118 was shelled, Euler -2 against 0; sheets seed 0 / 1
+#: F 0.980 / 0.962 without, 0.979 / 0.960 with 25, 0.976 / 0.957 with 50).
+THIN_POINTS = 25
 #: The cloud is closed when charts facing clearly out hold this share of the join's samples.
 CLOSED_SHARE = 0.5
 #: Charts re-meshed at once, in threads (ONNX Runtime, GEOS and qhull release the GIL): torus
@@ -291,7 +297,7 @@ class AtlasReconstructor(BaseEstimator):
         gap out) and both charts face out. The data behind such a chart, uncharted, tells it
         apart from a slab's face (the mug's 4 mm wall: no data inside): it is `thin_`, a shell
         whose far face keeps the gap open (bench.atlas sheets 20k, seeds 0 / 1: F 0.960 /
-        0.928 -> 0.980 / 0.962, the gap's mid-plane outside the mesh 0 -> 97 % / 73 %)."""
+        0.928 -> 0.979 / 0.960, the gap's mid-plane outside the mesh 0 -> 95 % / 71 %)."""
         sizes = np.array([len(k) for k in kept], float)
         for seal in (self.band, 2 * self.band):
             votes, two_sided = exterior_votes(chart_samples_, chart_normals, voxel, band=seal)
@@ -315,7 +321,7 @@ class AtlasReconstructor(BaseEstimator):
             # faces that data and keeps the gap in front of it open
             behind = self._behind_share(chart_samples_, [t * n for t, n in zip(
                 turned, chart_normals, strict=True)], sizes, voxel)
-            self.thin_ = outward & (behind >= THIN_SHARE)
+            self.thin_ = outward & (behind >= THIN_SHARE) & (behind * sizes >= THIN_POINTS)
             self.shells_ |= self.thin_
 
     def _behind_share(self, chart_samples_, chart_normals, sizes, voxel) -> np.ndarray:

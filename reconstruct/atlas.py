@@ -13,9 +13,11 @@ along one line of descent).
 The accepted charts' meshes, trimmed to a partition of the cloud, oriented alike (along their
 overlaps, and by which side of each is outside: `reconstruct.join.exterior_votes`) and joined by
 `reconstruct.join.implicit_mesh`, give ``mesh_``: when the charts enclose a volume, its
-boundary (watertight; a part thinner than the noise, charted as one sheet, as a thin shell;
-a warning if it still is not watertight); otherwise open where the data has a border or a hole
-wider than a few spacings.
+boundary (watertight; a part thinner than the noise, charted as one sheet, as a thin shell, and
+so a thin part charted on one face with the data of its far face left out of the charts just
+behind it, whose shell keeps the gap that data faces open: two plates a few noise widths
+apart; a warning if it still is not watertight); otherwise open where the data has a border
+or a hole wider than a few spacings.
 
 `remesh(lam=..., depth=...)` re-meshes every chart through its stored ONNX map (no retraining)
 and joins them again, re-evaluating the join's distance only near the samples that moved
@@ -56,6 +58,20 @@ _FIT_ONLY_PARAMS = ("graph", "n_jobs", "hidden_layers", "n_neighbors")
 VOTE_LIMIT = 0.5
 #: Input points farther than this (median spacings) from every joined sample are uncharted.
 UNCHARTED = 1.0
+#: A chart facing out is a thin part charted on one face when uncharted points lie behind this
+#: share of its samples (`AtlasReconstructor._behind_share`; seed 0 / 1 share 0.04: sheets F
+#: 0.980 / 0.964, 0.09: 0.978 / 0.956): its far face, left out by the
+#: sheet graph (points between two sheets join neither), faces a gap. bench.atlas 20k seed 0
+#: (1 for sheets): the plates' charts 0.06-0.14, no chart of mug, figurine, hook, torus over
+#: 0.051 (figurine's curled ears, already shells, up to 0.09), nor at seed 1 (figurine 0.049,
+#: mug 0.049 beside one small chart: `THIN_POINTS`).
+THIN_SHARE = 0.06
+#: Behind a sample: between these many voxels deep (the noise's near side is no evidence).
+THIN_DEPTH = (1.0, 3.0)
+#: ... and at least this many uncharted points behind it (a small chart's share is noise: mug
+#: 20k seed 1, a 132-point chart at 0.118 was shelled, Euler -2 against 0; sheets seed 0 / 1
+#: F 0.980 / 0.962 without, 0.979 / 0.960 with 25, 0.976 / 0.957 with 50).
+THIN_POINTS = 25
 #: The cloud is closed when charts facing clearly out hold this share of the join's samples.
 CLOSED_SHARE = 0.5
 #: Charts re-meshed at once, in threads (ONNX Runtime, GEOS and qhull release the GIL): torus
@@ -107,7 +123,9 @@ class AtlasReconstructor(BaseEstimator):
     (`ChartDecomposition`), ``signs_`` (c,) ±1 orientation of each chart, ``mesh_``
     (trimesh.Trimesh), ``faults_`` one line per chart kept though unfaithful,
     ``watertight_``, ``euler_``, ``winding_consistent_``, ``timings_`` seconds per stage,
-    ``votes_`` (c,) each chart's exterior vote (with a band of ``seal_`` voxels), ``closed_``
+    ``votes_`` (c,) each chart's exterior vote (with a band of ``seal_`` voxels), ``shells_``
+    (c,) charts joined as thin shells, ``thin_`` (c,) those of them charted on one face of a thin
+    part (`THIN_SHARE`), ``closed_``
     whether the cloud was joined as the boundary of a volume (then a mesh that is not
     watertight is warned about).
     """
@@ -275,17 +293,22 @@ class AtlasReconstructor(BaseEstimator):
             self._decide_sides(chart_samples_, chart_normals, kept, voxel)
             chart_normals = [s * m.vertex_normals[k]
                              for m, k, s in zip(meshes, kept, self.signs_, strict=True)]
-        samples, normals = [], []
-        for s, n, shell in zip(chart_samples_, chart_normals, self.shells_, strict=True):
+        samples, normals, kept_open = [], [], []
+        thin = getattr(self, "thin_", np.zeros(len(kept), bool))
+        for s, n, shell, far_face in zip(chart_samples_, chart_normals, self.shells_, thin,
+                                         strict=True):
             if shell:  # a part thinner than the noise, charted once: a thin closed shell
                 s, n = thin_shell(s, n, self.shell * voxel)
             samples.append(s)
             normals.append(n)
+            kept_open.append(np.full(len(s), bool(far_face)))
         samples, normals = np.concatenate(samples), np.concatenate(normals)
+        kept_open = np.concatenate(kept_open)
         uncharted = (lambda: self._uncharted(samples)) if self.closed_ else None
         self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim,
                                    closed=self.closed_, seal=self.seal_, uncharted=uncharted,
-                                   grid=self.__dict__.setdefault("_sdf", SparseSDF(voxel)))
+                                   grid=self.__dict__.setdefault("_sdf", SparseSDF(voxel)),
+                                   kept_open=kept_open if kept_open.any() else None)
         self.samples_, self.normals_ = samples, normals
         if decide or not (self._sdf.hit_ and hasattr(self, "euler_")):  # else the same mesh
             self.watertight_ = bool(self.mesh_.is_watertight)
@@ -297,13 +320,22 @@ class AtlasReconstructor(BaseEstimator):
         self.timings_["join"] = time.perf_counter() - started
 
     def _decide_sides(self, chart_samples_, chart_normals, kept, voxel) -> None:
-        """Set ``closed_``, ``seal_``, ``votes_``, ``shells_`` (c,) bool and turn ``signs_``.
+        """Set ``closed_``, ``seal_``, ``votes_``, ``shells_`` and ``thin_`` (c,) bool and turn
+        ``signs_``.
 
         Which side of each chart is outside the object (`exterior_votes`): a closed cloud's
         charts say so clearly (mug, torus, hook, figurine 20k: 81–100 % of the samples); an
         open one's, seen from both sides, do not (relief: none). A hole in the samples wider
         than twice the band (points the sheet graph left out) lets the outside in and every
-        chart looks two-sided: a wider seal is tried too."""
+        chart looks two-sided: a wider seal is tried too.
+
+        Two plates a few noise widths apart (sheets: 1.5 mm plates 3 mm apart at σ 0.75 mm)
+        look like one slab to the votes: the gap is narrower than twice the band, each plate is
+        charted on its outer face (the sheet graph leaves the points of the faces towards the
+        gap out) and both charts face out. The data behind such a chart, uncharted, tells it
+        apart from a slab's face (the mug's 4 mm wall: no data inside): it is `thin_`, a shell
+        whose far face keeps the gap open (bench.atlas sheets 20k, seeds 0 / 1: F 0.960 /
+        0.928 -> 0.979 / 0.960, the gap's mid-plane outside the mesh 0 -> 95 % / 71 %)."""
         sizes = np.array([len(k) for k in kept], float)
         for seal in (self.band, 2 * self.band):
             votes, two_sided = exterior_votes(chart_samples_, chart_normals, voxel, band=seal)
@@ -315,11 +347,40 @@ class AtlasReconstructor(BaseEstimator):
                 break
         self.votes_, self.seal_ = votes, seal
         self.shells_ = np.zeros(len(kept), bool)
+        self.thin_ = np.zeros(len(kept), bool)
         if self.closed_:
             # the others keep their orientation along the overlaps, turned like most charts
             turn = np.sign(np.sum(sizes[outward] * np.sign(votes[outward]))) or 1.0
-            self.signs_ = self.signs_ * np.where(outward, np.sign(votes), turn)
+            turned = np.where(outward, np.sign(votes), turn)
+            self.signs_ = self.signs_ * turned
             self.shells_ = ~outward & (two_sided >= VOTE_LIMIT)
+            # a chart facing out with data left out just behind it: a thin part charted on one
+            # face (two plates a few noise widths apart), joined as a shell whose far face
+            # faces that data and keeps the gap in front of it open
+            behind = self._behind_share(chart_samples_, [t * n for t, n in zip(
+                turned, chart_normals, strict=True)], sizes, voxel)
+            self.thin_ = outward & (behind >= THIN_SHARE) & (behind * sizes >= THIN_POINTS)
+            self.shells_ |= self.thin_
+
+    def _behind_share(self, chart_samples_, chart_normals, sizes, voxel) -> np.ndarray:
+        """(c,) uncharted points (`_uncharted`) lying `THIN_DEPTH` voxels behind their nearest
+        sample of each chart (against its outward normal), per sample of the chart."""
+        from scipy.spatial import cKDTree
+
+        filled = [i for i, s in enumerate(chart_samples_) if len(s)]
+        if not filled:
+            return np.zeros(len(chart_samples_))
+        every = np.concatenate([chart_samples_[i] for i in filled])
+        facing = np.concatenate([chart_normals[i] for i in filled])
+        owner = np.concatenate([np.full(len(chart_samples_[i]), i) for i in filled])
+        far = self._uncharted(every)
+        if len(far) == 0:
+            return np.zeros(len(chart_samples_))
+        nearest = cKDTree(every).query(far)[1]
+        depth = -np.einsum("ij,ij->i", far - every[nearest], facing[nearest])
+        behind = (depth > THIN_DEPTH[0] * voxel) & (depth < THIN_DEPTH[1] * voxel)
+        counts = np.bincount(owner[nearest[behind]], minlength=len(chart_samples_))
+        return counts / np.maximum(sizes, 1.0)
 
     def _uncharted(self, samples: np.ndarray) -> np.ndarray:
         """Input points (p, 3) farther than ``UNCHARTED`` spacings from every sample, in
@@ -395,7 +456,8 @@ class AtlasReconstructor(BaseEstimator):
         arrays.update(points=self.points_, labels=self.decomposition_.labels_,
                       chart_points=np.concatenate(self.chart_points_),
                       chart_offsets=np.cumsum([0, *sizes]), signs=np.asarray(self.signs_),
-                      shells=np.asarray(self.shells_, bool))
+                      shells=np.asarray(self.shells_, bool),
+                      thin=np.asarray(getattr(self, "thin_", np.zeros(len(sizes), bool)), bool))
         return meta, arrays
 
     @classmethod
@@ -428,6 +490,11 @@ class AtlasReconstructor(BaseEstimator):
         self.faults_ = [str(fault) for fault in meta["faults"]]
         self.closed_, self.seal_ = bool(meta["closed"]), float(meta["seal"])
         self.shells_ = np.asarray(arrays["shells"], bool)
+        # states written before thin parts were told apart have none
+        self.thin_ = (np.asarray(arrays["thin"], bool) if "thin" in arrays
+                      else np.zeros(n_charts, bool))
+        if self.thin_.shape != self.shells_.shape:
+            raise ValueError("its thin parts and shells do not agree")
         self.timings_ = {}
         if "join" in meta:  # the join's grid and last mesh: the first re-mesh is incremental
             self._sdf = SparseSDF.from_state(meta["join"], arrays, prefix="join_")

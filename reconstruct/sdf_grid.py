@@ -38,17 +38,17 @@ def lattice_box(samples: np.ndarray, voxel: float, pad: float) -> tuple[np.ndarr
     return low, np.ceil((high - low) / voxel).astype(np.int64) + 1
 
 
-def imls(nodes, samples, normals, tree: cKDTree, voxel: float):
+def imls(nodes, samples, normals, tree: cKDTree, voxel: float, return_index: bool = False):
     """IMLS signed distance at ``nodes`` (q, 3) from oriented ``samples`` (m, 3) / ``normals``
     (m, 3) in ``tree``. Returns values (q,) and the distances (q, k) to the k nearest samples
-    (k = 8, or fewer samples), nearest first."""
+    (k = 8, or fewer samples), nearest first (and their indices (q, k), ``return_index``)."""
     k = min(IMLS_NEIGHBOURS, len(samples))
     d, index = tree.query(nodes, k=k)
     d, index = d.reshape(len(nodes), k), index.reshape(len(nodes), k)
     offsets = np.einsum("gki,gki->gk", nodes[:, None, :] - samples[index], normals[index])
     weights = np.exp(-(d / (IMLS_WIDTH * voxel)) ** 2)
     values = (weights * offsets).sum(axis=1) / np.maximum(weights.sum(axis=1), 1e-300)
-    return values, d
+    return (values, d, index) if return_index else (values, d)
 
 
 class SparseSDF:

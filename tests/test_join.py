@@ -69,6 +69,33 @@ def test_a_sheet_joined_as_a_thin_shell_is_closed():
     assert 0.88 < radius.min() and radius.max() < 1.12
 
 
+def test_a_gap_facing_kept_open_samples_stays_open():
+    # two plates (square sheets 2 across at x = ±0.2, joined as shells 0.2 thick) with a gap of
+    # 2 voxels between their facing faces: a closed join caps it (the opening fills voids under
+    # 3 voxels) unless the faces towards it are kept open
+    u = np.linspace(-1, 1, 61)
+    grid = np.stack(np.meshgrid(u, u, indexing="ij"), axis=-1).reshape(-1, 2)
+    samples, normals = [], []
+    for x in (-0.2, 0.2):
+        sheet = np.c_[np.full(len(grid), x), grid]
+        s, n = thin_shell(sheet, np.tile([np.sign(x), 0.0, 0.0], (len(grid), 1)), 0.1)
+        samples.append(s)
+        normals.append(n)
+    samples, normals = np.concatenate(samples), np.concatenate(normals)
+    voxel = 0.1
+
+    def in_gap(mesh):  # vertices of faces towards the gap, away from the plates' borders
+        v = mesh.vertices
+        return np.sum((np.abs(v[:, 0]) < 0.15) & (np.abs(v[:, 1:]) < 0.6).all(axis=1))
+
+    capped = implicit_mesh(samples, normals, voxel, closed=True)
+    opened = implicit_mesh(samples, normals, voxel, closed=True,
+                           kept_open=np.ones(len(samples), bool))
+    assert capped.is_watertight and opened.is_watertight
+    assert in_gap(capped) == 0 and in_gap(opened) > 100
+    assert opened.volume < 0.8 * capped.volume
+
+
 def test_sheets_touching_along_an_edge_are_parted():
     a, b = trimesh.creation.box(), trimesh.creation.box()
     b.apply_translation((1, 1, 0))

@@ -159,40 +159,49 @@ class AtlasReconstructor(BaseEstimator):
 
     def start(self, points) -> AtlasReconstructor:
         """Begin a `fit` of ``points`` (n, 3) in the background, while the caller does other
-        work: the chart workers start and one of them decomposes the cloud (then imports
-        torch). A later ``fit(points)`` of the same array takes both up; `cancel` drops
-        them. Without workers (``n_jobs=1``, a daemonic process) nothing starts. Rough 20k:
-        the decomposition (2.1 s) runs while `SurfaceReconstructor` searches one chart's net,
+        work: the chart workers start and one of them decomposes the cloud. A later
+        ``fit(points)`` of the same array takes both up (of the parameters, only
+        ``hidden_layers`` and ``n_neighbors`` may change in between); `cancel` drops them.
+        Without workers (``n_jobs=1``, a daemonic process) nothing starts. Until then the
+        estimator holds a process pool: it cannot be pickled or copied. Rough 20k: the
+        decomposition (2.1 s) runs while `SurfaceReconstructor` searches one chart's net,
         which decides whether the atlas is needed."""
         self.cancel()
+        charted = self._charted(check_points(points))
         workers = chart_workers(self.n_jobs, warm=False)
-        if workers is not None:
-            charted = self._charted(check_points(points))
-            decomposition = workers.submit(self._decomposition().fit, charted)
-            warm_up(workers, n_chart_workers(self.n_jobs))  # the decomposition needs no torch
-            self._started = (points, workers, decomposition)
+        if workers is None:
+            return self
+        # no torch yet (the decomposition needs none): a cancel then waits for no import
+        self._started = (points, charted, workers,
+                         workers.submit(self._decomposition().fit, charted))
         return self
 
     def cancel(self) -> None:
-        """Drop what `start` began: its workers are stopped, whatever they run (waiting for
-        their torch import cost a 20k sphere cap's one-chart fit 2.2 s)."""
+        """Drop what `start` began: its workers shut down once the decomposition they may
+        still run ends (loky's `kill_workers` left a worker blocked on sending its result, and
+        its manager thread can raise on an item killed before it was dispatched)."""
         started = self.__dict__.pop("_started", None)
         if started is not None:
-            started[2].cancel()
-            started[1].shutdown(wait=True, kill_workers=True)
+            started[3].cancel()
+            started[2].shutdown(wait=True)
 
     def fit(self, points, y=None) -> AtlasReconstructor:
         """points : (n, 3) float. Returns self with ``mesh_`` set."""
-        started_with, workers, decomposition = self.__dict__.pop("_started", (None,) * 3)
-        if started_with is not points:  # started for other points: only its workers serve
+        started_with, charted, workers, decomposition = self.__dict__.pop(
+            "_started", (None,) * 4)
+        if started_with is not points:  # begun for other points: only its workers serve
             decomposition = None
-        points = check_points(points)
         started = time.perf_counter()
         self.timings_ = {}
-        if workers is None:
-            workers = chart_workers(self.n_jobs)
         try:
-            points, fitted = self._fit_all(points, workers, started, decomposition)
+            points = check_points(points)
+            if workers is None:
+                workers = chart_workers(self.n_jobs)
+            else:  # begun by `start`: torch now, while this process decomposes or fits
+                warm_up(workers, n_chart_workers(self.n_jobs))
+            points, fitted = self._fit_all(points, workers, started,
+                                           None if decomposition is None
+                                           else (charted, decomposition))
         finally:  # no worker outlives the fit: a process exiting joins its children first
             if workers is not None:
                 workers.shutdown(wait=True)
@@ -222,17 +231,20 @@ class AtlasReconstructor(BaseEstimator):
         return points[np.sort(keep)]
 
     def _decomposition(self) -> ChartDecomposition:
+        """An unfitted `ChartDecomposition` with this atlas's parameters."""
         return ChartDecomposition(chart_size=self.chart_size, overlap=self.overlap,
                                   graph=self.graph, random_state=self.random_state)
 
-    def _fit_all(self, points, workers, started, decomposition=None) -> tuple[np.ndarray, dict]:
-        """Decompose ``points`` (a subset of them beyond ``max_points``; or take the
-        ``decomposition`` future `start` submitted) and fit every chart, splitting unfaithful
-        ones. Returns (the points charted, {chart: (reconstructor or None, its point
-        indices)})."""
-        points = self._charted(points)
-        decomposition = (self._decomposition().fit(points) if decomposition is None
-                         else decomposition.result())
+    def _fit_all(self, points, workers, started, begun=None) -> tuple[np.ndarray, dict]:
+        """Decompose ``points`` (a subset of them beyond ``max_points``), or take up what
+        `start` began (``begun``: the points it charted and its decomposition's future), and
+        fit every chart, splitting unfaithful ones. Returns (the points charted, {chart:
+        (reconstructor or None, its point indices)})."""
+        if begun is None:
+            points = self._charted(points)
+            decomposition = self._decomposition().fit(points)
+        else:
+            points, decomposition = begun[0], begun[1].result()
         self.timings_["charts"] = time.perf_counter() - started
         self.decomposition_ = decomposition
         self.points_ = points
@@ -301,7 +313,7 @@ class AtlasReconstructor(BaseEstimator):
                 s, n = thin_shell(s, n, self.shell * voxel)
             samples.append(s)
             normals.append(n)
-            kept_open.append(np.full(len(s), bool(far_face)))
+            kept_open.append(np.full(len(s), bool(far_face)))  # both faces of its shell
         samples, normals = np.concatenate(samples), np.concatenate(normals)
         kept_open = np.concatenate(kept_open)
         uncharted = (lambda: self._uncharted(samples)) if self.closed_ else None
@@ -335,7 +347,7 @@ class AtlasReconstructor(BaseEstimator):
         gap out) and both charts face out. The data behind such a chart, uncharted, tells it
         apart from a slab's face (the mug's 4 mm wall: no data inside): it is `thin_`, a shell
         whose far face keeps the gap open (bench.atlas sheets 20k, seeds 0 / 1: F 0.960 /
-        0.928 -> 0.979 / 0.960, the gap's mid-plane outside the mesh 0 -> 95 % / 71 %)."""
+        0.928 -> 0.979 / 0.960, the gap's mid-plane outside the mesh 0 -> 92 % / 68 %)."""
         sizes = np.array([len(k) for k in kept], float)
         for seal in (self.band, 2 * self.band):
             votes, two_sided = exterior_votes(chart_samples_, chart_normals, voxel, band=seal)

@@ -23,12 +23,14 @@ samples and extracts its zero level with scikit-image's marching cubes.
   front of a sample (outside its tangent plane, within a voxel of its normal line) the planes
   hold instead (the closing is for the holes beside the samples, not for the space they face);
   the grid is opened and smoothed by a voxel (no sub-voxel tunnels; not in front of the
-  ``kept_open`` samples, the far faces of thin parts across a narrow gap), and vertices where
+  ``kept_open`` samples, the shells of thin parts across a narrow gap), and vertices where
   two sheets touch are split (`split_nonmanifold`): the mesh is the boundary of a volume,
   watertight.
 """
 
 from __future__ import annotations
+
+import hashlib
 
 import numpy as np
 import trimesh
@@ -244,9 +246,10 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     that changed since, and the same samples give back the same mesh at once (then its
     ``hit_`` is True);
     kept_open : (m,) bool, in a closed join: samples whose front (the nodes straight in front
-    of them, `_FRONT`) the grey opening may not fill: the far faces of thin parts facing data
-    left out of the charts (`reconstruct.atlas`), where the void in front is a gap between
-    sheets a few voxels wide, not a crack to seal."""
+    of them, `_FRONT`) the grey opening may not fill: both faces of the shells of thin parts
+    facing data left out of the charts (`reconstruct.atlas`; the far face matters: the void in
+    front of it is a gap between sheets a few voxels wide, not a crack to seal; the near face
+    faces the outside anyway)."""
     from skimage.measure import marching_cubes  # scikit-image: only on the joining path
 
     samples = np.asarray(samples, float)
@@ -254,8 +257,8 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     sdf = SparseSDF(voxel, band) if grid is None else grid
     sdf.voxel, sdf.band = voxel, band
     sdf.follow(samples, normals)
-    key = (trim, min_share, hole, closed, seal,
-           None if kept_open is None else int(np.count_nonzero(kept_open)))
+    key = (trim, min_share, hole, closed, seal, None if kept_open is None
+           else hashlib.sha1(np.packbits(np.asarray(kept_open, bool))).hexdigest())
     sdf.hit_ = bool(data is None and sdf.n_changed_ == 0
                     and getattr(sdf, "mesh_key_", None) == key)
     if sdf.hit_:

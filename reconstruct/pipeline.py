@@ -98,7 +98,9 @@ class SurfaceReconstructor(BaseEstimator):
         cloud is not one disc-like surface: its embedding's residual variance is over
         ``ATLAS_RESIDUAL``, the one-chart mesh leaves more than ``UNEXPLAINED_LIMIT`` of the
         points unexplained, or more than ``BRIDGE_LIMIT`` of its area spans holes in the data
-        (`faithfulness.bridged_share`; the atlas then fits the piece the chart fitted);
+        (`faithfulness.bridged_share`; the atlas then fits the piece the chart fitted).
+        From ``SPECULATE_FROM`` points it decomposes the cloud for the atlas in a worker
+        process while the one chart is searched (stopped if one chart holds the cloud);
         "never" keeps one chart (and warns); "always" fits an atlas.
     mlp : an unfitted `AdaptiveMLP` (cloned by `fit`) used instead of the one ``max_layers``,
         ``max_neurons``, ``activation``, ``retrain`` and ``random_state`` describe: other

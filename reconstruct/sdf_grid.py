@@ -113,6 +113,8 @@ class SparseSDF:
         self.n_changed_ = int(added.sum() + removed.sum())
         if self.n_changed_ == 0:
             self.n_evaluated_ = 0
+            if not np.array_equal(samples, self._old):  # the same, in another order
+                self.tree_ = cKDTree(samples)
             return self
         origin, shape = lattice_box(samples, self.voxel, self.band + 1)
         if 2 * self.n_changed_ > len(samples) + len(self._old) or np.any(

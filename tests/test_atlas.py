@@ -7,6 +7,7 @@ import warnings
 import numpy as np
 import pytest
 import trimesh
+from joblib import effective_n_jobs
 
 from reconstruct.atlas import AtlasReconstructor
 from reconstruct.errors import (
@@ -220,15 +221,21 @@ def test_the_join_can_be_told_to_stay_open(sphere_atlas):
     assert atlas.closed_ and atlas.watertight_
 
 
-def test_a_started_atlas_fits_the_same_mesh_and_leaves_no_worker():
+def test_a_started_atlas_fits_the_same_mesh_and_leaves_no_worker(monkeypatch):
     points = holed_patch(n=1500)
     plain = AtlasReconstructor(chart_size=500, n_jobs=1).fit(points)
     started = AtlasReconstructor(chart_size=500, n_jobs=2).start(points)
-    started.fit(points)
+
+    def decomposed_here(*_, **__):
+        raise AssertionError("the decomposition begun by start was not taken up")
+
+    with monkeypatch.context() as patch:  # the worker, a spawned process, is not patched
+        patch.setattr("reconstruct.charts.ChartDecomposition.fit", decomposed_here)
+        started.fit(points)
     np.testing.assert_array_equal(plain.mesh_.vertices, started.mesh_.vertices)
     np.testing.assert_array_equal(plain.mesh_.faces, started.mesh_.faces)
     assert multiprocessing.active_children() == []
-    # started for other points: those are decomposed afresh, and the same mesh comes out
+    # begun for other points: those are decomposed afresh, and the same mesh comes out
     other = AtlasReconstructor(chart_size=500, n_jobs=2).start(points[::-1]).fit(points)
     np.testing.assert_array_equal(plain.mesh_.faces, other.mesh_.faces)
     assert multiprocessing.active_children() == []
@@ -242,6 +249,18 @@ def test_a_cancelled_start_leaves_no_worker():
     assert not hasattr(atlas, "mesh_")
 
 
+def test_bad_points_after_a_start_leave_no_worker():
+    atlas = AtlasReconstructor(chart_size=500, n_jobs=2).start(holed_patch(n=1500))
+    bad = np.zeros((1500, 2))  # not (n, 3)
+    with pytest.raises(InvalidInputError):
+        atlas.fit(bad)
+    assert multiprocessing.active_children() == []
+    with pytest.raises(InvalidInputError):
+        atlas.start(bad)
+    assert multiprocessing.active_children() == []
+
+
+@pytest.mark.skipif(effective_n_jobs(-1) < 2, reason="one core: no worker to begin an atlas on")
 def test_the_atlas_begun_beside_a_one_chart_search_gives_the_same_mesh(monkeypatch):
     """SurfaceReconstructor decomposes a large cloud on a spare core while it searches one
     chart's net; the atlas it turns to takes that up, and a one-chart fit drops it."""
@@ -253,8 +272,17 @@ def test_the_atlas_begun_beside_a_one_chart_search_gives_the_same_mesh(monkeypat
     monkeypatch.setattr("reconstruct.pipeline.SPECULATE_FROM", 10**9)
     alone = SurfaceReconstructor(**params).fit(points)
     monkeypatch.setattr("reconstruct.pipeline.SPECULATE_FROM", 1000)
+    taken_up = []
+    fit = AtlasReconstructor.fit
+
+    def fit_spied(atlas, cloud, y=None):
+        taken_up.append("_started" in atlas.__dict__ and atlas._started[0] is cloud)
+        return fit(atlas, cloud, y)
+
+    monkeypatch.setattr(AtlasReconstructor, "fit", fit_spied)
     begun = SurfaceReconstructor(**params).fit(points)
     assert begun.atlas_reason_ == alone.atlas_reason_ == "one chart's mesh spans holes in the data"
+    assert taken_up == [True]
     np.testing.assert_array_equal(alone.mesh_.faces, begun.mesh_.faces)
     np.testing.assert_array_equal(alone.mesh_.vertices, begun.mesh_.vertices)
     assert multiprocessing.active_children() == []

@@ -33,6 +33,7 @@ import os
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import wait as wait_for
 from pathlib import Path
 
 import numpy as np
@@ -159,11 +160,11 @@ class AtlasReconstructor(BaseEstimator):
 
     def start(self, points) -> AtlasReconstructor:
         """Begin a `fit` of ``points`` (n, 3) in the background, while the caller does other
-        work: the chart workers start and one of them decomposes the cloud. A later
-        ``fit(points)`` of the same array takes both up (of the parameters, only
-        ``hidden_layers`` and ``n_neighbors`` may change in between); `cancel` drops them.
-        Without workers (``n_jobs=1``, a daemonic process) nothing starts. Until then the
-        estimator holds a process pool: it cannot be pickled or copied. Rough 20k: the
+        work: the chart workers start, one of them decomposes the cloud, and they import
+        torch. A later ``fit(points)`` of the same array takes both up (of the parameters,
+        only ``hidden_layers`` and ``n_neighbors`` may change in between); `cancel` drops
+        them. Without workers (``n_jobs=1``, a daemonic process) nothing starts. Until then
+        the estimator holds a process pool: it cannot be pickled or copied. Rough 20k: the
         decomposition (2.1 s) runs while `SurfaceReconstructor` searches one chart's net,
         which decides whether the atlas is needed."""
         self.cancel()
@@ -171,24 +172,33 @@ class AtlasReconstructor(BaseEstimator):
         workers = chart_workers(self.n_jobs, warm=False)
         if workers is None:
             return self
-        # no torch yet (the decomposition needs none): a cancel then waits for no import
-        self._started = (points, charted, workers,
-                         workers.submit(self._decomposition().fit, charted))
+        decomposition = workers.submit(self._decomposition().fit, charted)
+        warming = warm_up(workers, n_chart_workers(self.n_jobs))  # the decomposition needs none
+        self._started = (points, charted, workers, decomposition, warming)
         return self
 
     def cancel(self) -> None:
-        """Drop what `start` began: its workers shut down once the decomposition they may
-        still run ends (loky's `kill_workers` left a worker blocked on sending its result, and
-        its manager thread can raise on an item killed before it was dispatched)."""
+        """Drop what `start` began: wait for the decomposition, then stop the workers in their
+        torch import (waiting for the import cost a 20k sphere cap's one-chart fit 2.2 s).
+        Loky's `kill_workers` earlier than that left a worker blocked sending its result, or
+        its manager thread raised on an item not yet dispatched."""
         started = self.__dict__.pop("_started", None)
-        if started is not None:
-            started[3].cancel()
-            started[2].shutdown(wait=True)
+        if started is None:
+            return
+        _, _, workers, decomposition, warming = started
+        wait_for([decomposition])
+        deadline = time.monotonic() + 10.0
+        while not all(f.running() or f.done() for f in warming):  # dispatched, in a moment
+            if time.monotonic() > deadline:
+                workers.shutdown(wait=True)
+                return
+            time.sleep(0.005)
+        workers.shutdown(wait=True, kill_workers=True)
 
     def fit(self, points, y=None) -> AtlasReconstructor:
         """points : (n, 3) float. Returns self with ``mesh_`` set."""
-        started_with, charted, workers, decomposition = self.__dict__.pop(
-            "_started", (None,) * 4)
+        started_with, charted, workers, decomposition, _ = self.__dict__.pop(
+            "_started", (None,) * 5)
         if started_with is not points:  # begun for other points: only its workers serve
             decomposition = None
         started = time.perf_counter()
@@ -197,8 +207,6 @@ class AtlasReconstructor(BaseEstimator):
             points = check_points(points)
             if workers is None:
                 workers = chart_workers(self.n_jobs)
-            else:  # begun by `start`: torch now, while this process decomposes or fits
-                warm_up(workers, n_chart_workers(self.n_jobs))
             points, fitted = self._fit_all(points, workers, started,
                                            None if decomposition is None
                                            else (charted, decomposition))

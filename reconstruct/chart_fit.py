@@ -120,10 +120,10 @@ def n_chart_workers(n_jobs: int | None) -> int:
     return 0 if multiprocessing.current_process().daemon else effective_n_jobs(n_jobs) - 1
 
 
-def warm_up(workers, n_workers: int) -> None:
-    """Have each of the ``n_workers`` ``workers`` import torch and the pipeline."""
-    for _ in range(n_workers):
-        workers.submit(_import_pipeline)
+def warm_up(workers, n_workers: int) -> list:
+    """Have each of the ``n_workers`` ``workers`` import torch and the pipeline; returns the
+    futures."""
+    return [workers.submit(_import_pipeline) for _ in range(n_workers)]
 
 
 def fit_charts(clouds: list[np.ndarray], workers=None, **params) -> list[tuple]:

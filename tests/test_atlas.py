@@ -2,6 +2,7 @@
 closed, open at borders and holes (reconstruct.atlas, reconstruct.join)."""
 
 import multiprocessing
+import time
 import warnings
 
 import numpy as np
@@ -243,10 +244,18 @@ def test_a_started_atlas_fits_the_same_mesh_and_leaves_no_worker(monkeypatch):
 
 def test_a_cancelled_start_leaves_no_worker():
     atlas = AtlasReconstructor(chart_size=500, n_jobs=2).start(holed_patch(n=1500))
-    atlas.cancel()
+    atlas.cancel()  # at once: the workers are waited for
     atlas.cancel()  # twice: nothing left to drop
     assert multiprocessing.active_children() == []
     assert not hasattr(atlas, "mesh_")
+    # once the decomposition is back and the torch import runs: the workers are stopped
+    atlas.start(holed_patch(n=1500))
+    _, _, _, decomposition, warming = atlas._started
+    decomposition.result()
+    while not all(f.running() or f.done() for f in warming):
+        time.sleep(0.01)
+    atlas.cancel()
+    assert multiprocessing.active_children() == []
 
 
 def test_bad_points_after_a_start_leave_no_worker():

@@ -314,9 +314,8 @@ class AtlasReconstructor(BaseEstimator):
             chart_normals = [s * m.vertex_normals[k]
                              for m, k, s in zip(meshes, kept, self.signs_, strict=True)]
         samples, normals, kept_open = [], [], []
-        thin = getattr(self, "thin_", np.zeros(len(kept), bool))
-        for s, n, shell, far_face in zip(chart_samples_, chart_normals, self.shells_, thin,
-                                         strict=True):
+        for s, n, shell, far_face in zip(chart_samples_, chart_normals, self.shells_,
+                                         self.thin_, strict=True):
             if shell:  # a part thinner than the noise, charted once: a thin closed shell
                 s, n = thin_shell(s, n, self.shell * voxel)
             samples.append(s)
@@ -477,7 +476,7 @@ class AtlasReconstructor(BaseEstimator):
                       chart_points=np.concatenate(self.chart_points_),
                       chart_offsets=np.cumsum([0, *sizes]), signs=np.asarray(self.signs_),
                       shells=np.asarray(self.shells_, bool),
-                      thin=np.asarray(getattr(self, "thin_", np.zeros(len(sizes), bool)), bool))
+                      thin=np.asarray(self.thin_, bool))
         return meta, arrays
 
     @classmethod

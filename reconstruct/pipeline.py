@@ -279,6 +279,7 @@ class SurfaceReconstructor(BaseEstimator):
         return None
 
     def _new_atlas(self):
+        """An unfitted `AtlasReconstructor` with this reconstruction's λ, depth and seed."""
         from .atlas import AtlasReconstructor
 
         return AtlasReconstructor(lam=self.lam, depth=self.depth, random_state=self.random_state)

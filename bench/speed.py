@@ -162,6 +162,11 @@ def print_training(rows) -> None:
                   f"{m['rms'][1]:>10.4f}{ratio:>11.2f}")
     ratios = [r["lbfgs"]["s"] / r["ours"]["s"] for r in rows]
     print(f"median lbfgs/ours {statistics.median(ratios):.2f} (min {min(ratios):.2f})")
+    per_configuration = [r["lbfgs"]["s"] / r["lbfgs"]["configs"]
+                         / (r["ours"]["s"] / r["ours"]["configs"]) for r in rows]
+    print(f"  per configuration trained (the growths stop at different sizes; not the target): "
+          f"median {statistics.median(per_configuration):.2f} "
+          f"(min {min(per_configuration):.2f})")
     missed = [f"{r['shape']} {r['n']} seed {r['seed']}" for r in rows
               if r["lbfgs"]["s"] < 1.5 * r["ours"]["s"]
               or r["ours"]["rms"][1] > r["lbfgs"]["rms"][1]]

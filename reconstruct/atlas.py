@@ -392,23 +392,26 @@ class AtlasReconstructor(BaseEstimator):
         every = np.concatenate([chart_samples_[i] for i in filled])
         facing = np.concatenate([chart_normals[i] for i in filled])
         owner = np.concatenate([np.full(len(chart_samples_[i]), i) for i in filled])
-        far = self._uncharted(every)
+        tree = cKDTree(every)
+        far = self._uncharted(every, tree)
         if len(far) == 0:
             return np.zeros(len(chart_samples_))
-        nearest = cKDTree(every).query(far)[1]
+        nearest = tree.query(far)[1]
         depth = -np.einsum("ij,ij->i", far - every[nearest], facing[nearest])
         behind = (depth > THIN_DEPTH[0] * voxel) & (depth < THIN_DEPTH[1] * voxel)
         counts = np.bincount(owner[nearest[behind]], minlength=len(chart_samples_))
         return counts / np.maximum(sizes, 1.0)
 
-    def _uncharted(self, samples: np.ndarray) -> np.ndarray:
+    def _uncharted(self, samples: np.ndarray, tree=None) -> np.ndarray:
         """Input points (p, 3) farther than ``UNCHARTED`` spacings from every sample, in
         clusters of at least 4 within 2 spacings: data the charts left out (a junction where
-        the sheet graph cut its points off), not single noisy points."""
+        the sheet graph cut its points off), not single noisy points. ``tree``: a cKDTree of
+        ``samples`` (m, 3) if the caller has one."""
         from scipy.spatial import cKDTree
 
         spacing = self.decomposition_.spacing_
-        far = self.points_[cKDTree(samples).query(self.points_)[0] > UNCHARTED * spacing]
+        tree = cKDTree(samples) if tree is None else tree
+        far = self.points_[tree.query(self.points_)[0] > UNCHARTED * spacing]
         if len(far) < 4:
             return far[:0]
         crowd = cKDTree(far).query_ball_point(far, 2 * spacing, return_length=True)

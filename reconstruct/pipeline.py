@@ -174,7 +174,7 @@ class SurfaceReconstructor(BaseEstimator):
         self._check_mesh_params()
         if self.atlas not in ATLAS_MODES:
             raise InvalidInputError(f"atlas must be one of {ATLAS_MODES}, got {self.atlas!r}")
-        points = check_points(points)
+        points = np.array(check_points(points))  # its own: ``points_`` may be this array
         for name in ("atlas_", "atlas_reason_"):
             self.__dict__.pop(name, None)
         self.timings_ = {}
@@ -190,7 +190,9 @@ class SurfaceReconstructor(BaseEstimator):
             method=self.embedding, n_neighbors=n_neighbors, random_state=self.random_state
         ).fit(points)
         self.timings_["embedding"] = time.perf_counter() - started
-        fitted = points[embedding.support_]
+        # the same array when the embedding kept every point: an atlas begun on it serves
+        # whichever of the two `_atlas_reason` gives
+        fitted = points if embedding.support_.all() else points[embedding.support_]
         uv = embedding.embedding_
         if warm_start is None and self.atlas == "auto":
             residual = embedding.residual_variance_

@@ -273,6 +273,20 @@ def test_bad_points_after_a_start_leave_no_worker():
 
 
 @pytest.mark.skipif(effective_n_jobs(-1) < 2, reason="one core: no worker to begin an atlas on")
+def spy_on_take_up(monkeypatch) -> list[bool]:
+    """Record, for each `AtlasReconstructor.fit`, whether it takes up what `start` began on the
+    very array it is given."""
+    taken_up = []
+    fit = AtlasReconstructor.fit
+
+    def fit_spied(atlas, cloud, y=None):
+        taken_up.append("_started" in atlas.__dict__ and atlas._started[0] is cloud)
+        return fit(atlas, cloud, y)
+
+    monkeypatch.setattr(AtlasReconstructor, "fit", fit_spied)
+    return taken_up
+
+
 def test_the_atlas_begun_beside_a_one_chart_search_gives_the_same_mesh(monkeypatch):
     """SurfaceReconstructor decomposes a large cloud on a spare core while it searches one
     chart's net; the atlas it turns to takes that up, and a one-chart fit drops it."""
@@ -284,14 +298,7 @@ def test_the_atlas_begun_beside_a_one_chart_search_gives_the_same_mesh(monkeypat
     monkeypatch.setattr("reconstruct.pipeline.SPECULATE_FROM", 10**9)
     alone = SurfaceReconstructor(**params).fit(points)
     monkeypatch.setattr("reconstruct.pipeline.SPECULATE_FROM", 1000)
-    taken_up = []
-    fit = AtlasReconstructor.fit
-
-    def fit_spied(atlas, cloud, y=None):
-        taken_up.append("_started" in atlas.__dict__ and atlas._started[0] is cloud)
-        return fit(atlas, cloud, y)
-
-    monkeypatch.setattr(AtlasReconstructor, "fit", fit_spied)
+    taken_up = spy_on_take_up(monkeypatch)
     begun = SurfaceReconstructor(**params).fit(points)
     assert begun.atlas_reason_ == alone.atlas_reason_ == "one chart's mesh spans holes in the data"
     assert taken_up == [True]
@@ -310,14 +317,7 @@ def test_the_atlas_begun_beside_a_one_chart_search_serves_an_unexplained_cloud(m
     monkeypatch.setattr(
         SurfaceReconstructor, "_atlas_reason",
         lambda self, points, *args, **kwargs: (points, "unexplained", None, None))
-    taken_up = []
-    fit = AtlasReconstructor.fit
-
-    def fit_spied(atlas, cloud, y=None):
-        taken_up.append("_started" in atlas.__dict__ and atlas._started[0] is cloud)
-        return fit(atlas, cloud, y)
-
-    monkeypatch.setattr(AtlasReconstructor, "fit", fit_spied)
+    taken_up = spy_on_take_up(monkeypatch)
     points = holed_patch(n=1500)
     model = SurfaceReconstructor(max_layers=1, max_neurons=4).fit(points)
     assert model.atlas_reason_ == "unexplained"

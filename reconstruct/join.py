@@ -312,8 +312,11 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         mesh.remove_unreferenced_vertices()
     pieces = mesh.split(only_watertight=False) if n_pieces(mesh.faces) > 1 else [mesh]
     if len(pieces) > 1:
-        largest = max(len(p.faces) for p in pieces)
-        mesh = trimesh.util.concatenate([p for p in pieces if len(p.faces) >= min_share * largest])
+        largest = max(pieces, key=lambda p: len(p.faces))
+        kept = [p for p in pieces if len(p.faces) >= min_share * len(largest.faces)]
+        if closed:  # a closed piece facing the other way: a void, which no scan sees
+            kept = [p for p in kept if not _void(p, largest)]
+        mesh = trimesh.util.concatenate(kept)
     if closed:
         mesh = split_nonmanifold(mesh)
     else:
@@ -323,6 +326,15 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     if grid is not None and data is None:
         sdf.mesh_, sdf.mesh_key_ = mesh.copy(include_cache=True), key
     return mesh
+
+
+def _void(piece: trimesh.Trimesh, largest: trimesh.Trimesh) -> bool:
+    """Whether ``piece`` of a closed join is a void inside ``largest``: closed, and turned
+    the other way (marching cubes orients every piece by the grid's sign). Two layers of
+    samples under the surface, a thin part's shell meeting the charts beside it, close one
+    (figurine 20k: a 600-face bubble 2 mm under an ear, Euler 4 instead of 2)."""
+    return (piece is not largest and piece.is_watertight and largest.is_watertight
+            and piece.volume * largest.volume < 0)
 
 
 def split_nonmanifold(mesh: trimesh.Trimesh) -> trimesh.Trimesh:

@@ -133,3 +133,16 @@ def test_a_large_pocket_votes_through_an_even_subset_of_its_nodes():
     assert _VOTERS // 2 < counts[2] <= _VOTERS
     assert np.all(np.diff(kept[:, 0]) > 0)
     np.testing.assert_array_equal(label[kept[:, 0]], kept_label)
+
+
+def test_a_closed_join_leaves_no_void_inside_the_object():
+    """Samples of a second, inward-facing layer under the surface (two layers of a shell's
+    samples met) close a void of their own: nothing a scanner sees, so it is dropped."""
+    outer = trimesh.creation.icosphere(4)
+    inner = trimesh.creation.icosphere(3)
+    inner.apply_scale(0.5)
+    samples = np.concatenate([outer.vertices, inner.vertices])
+    normals = np.concatenate([outer.vertex_normals, -inner.vertex_normals])
+    mesh = implicit_mesh(samples, normals, voxel=0.05, closed=True)
+    assert mesh.is_watertight and mesh.euler_number == 2 and mesh.volume > 0
+    assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 1).max() < 0.05

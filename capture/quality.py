@@ -57,13 +57,16 @@ def visible_samples(truth: trimesh.Trimesh, calibration: Calibration, angles_deg
 def surface_quality(mesh: trimesh.Trimesh, fused_points, truth: trimesh.Trimesh,
                     visible: np.ndarray, raw_points=None, n_samples: int = 20_000) -> dict:
     """Figures of ``mesh`` against ``truth``: completeness of ``visible`` within τ, accuracy,
-    RMS distances and denoise ratios (mesh RMS / input RMS; < 1 means noise was removed)."""
+    RMS distances and denoise ratios (mesh RMS / input RMS; < 1 means noise was removed). The
+    input points' RMS distances are estimated on a random ``n_samples`` of them (to ~0.5 %):
+    the exact distances of every raw point of a 36-view scan (~120k) took 10 of the main job's
+    40 s."""
     size = float(np.linalg.norm(np.ptp(truth.vertices, axis=0)))
     tau = TAU_FRACTION * size
     to_mesh = distance_to_surface(mesh, visible)
     mesh_samples = sample_surface(mesh, n_samples, random_state=0)
     to_truth = distance_to_surface(truth, mesh_samples)
-    fused = distance_to_surface(truth, np.asarray(fused_points, dtype=np.float64))
+    fused = distance_to_surface(truth, _subset(fused_points, n_samples))
     rms = float(np.sqrt(np.mean(to_truth**2)))
     fused_rms = float(np.sqrt(np.mean(fused**2)))
     figures = {
@@ -79,8 +82,16 @@ def surface_quality(mesh: trimesh.Trimesh, fused_points, truth: trimesh.Trimesh,
         "denoise_ratio": rms / fused_rms if fused_rms > 0 else float("nan"),
     }
     if raw_points is not None and len(raw_points):
-        raw = distance_to_surface(truth, np.asarray(raw_points, dtype=np.float64))
+        raw = distance_to_surface(truth, _subset(raw_points, n_samples))
         raw_rms = float(np.sqrt(np.mean(raw**2)))
         figures["raw_rms_mm"] = raw_rms
         figures["denoise_ratio_raw"] = rms / raw_rms if raw_rms > 0 else float("nan")
     return figures
+
+
+def _subset(points, n: int) -> np.ndarray:
+    """(≤ n, 3) float64: ``points``, or a seeded random n of them."""
+    points = np.asarray(points, dtype=np.float64)
+    if len(points) <= n:
+        return points
+    return points[np.sort(np.random.default_rng(0).choice(len(points), n, replace=False))]

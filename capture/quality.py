@@ -60,7 +60,7 @@ def surface_quality(mesh: trimesh.Trimesh, fused_points, truth: trimesh.Trimesh,
     RMS distances and denoise ratios (mesh RMS / input RMS; < 1 means noise was removed). The
     input points' RMS distances are estimated on a random ``n_samples`` of them (to ~0.5 %):
     the exact distances of every raw point of a 36-view scan (~120k) took 10 of the main job's
-    40 s."""
+    43 s."""
     size = float(np.linalg.norm(np.ptp(truth.vertices, axis=0)))
     tau = TAU_FRACTION * size
     to_mesh = distance_to_surface(mesh, visible)

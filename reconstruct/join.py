@@ -329,8 +329,9 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
 
 
 def _void(piece: trimesh.Trimesh, largest: trimesh.Trimesh) -> bool:
-    """Whether ``piece`` of a closed join is a void inside ``largest``: closed, and turned
-    the other way (marching cubes orients every piece by the grid's sign). Two layers of
+    """Whether ``piece`` of a closed join is a void: closed, and turned the other way from
+    ``largest`` (marching cubes orients every piece by the grid's sign, so such a piece bounds
+    outside values enclosed by inside ones, within some solid piece). Two layers of
     samples under the surface, a thin part's shell meeting the charts beside it, close one
     (figurine 20k: a 600-face bubble 2 mm under an ear, Euler 4 instead of 2)."""
     return (piece is not largest and piece.is_watertight and largest.is_watertight

@@ -84,24 +84,6 @@ class ProjectedMLP:
         """The (in + 1, out) matrix of each hidden layer of ``theta``, in ``dtype``."""
         return self._views(load_torch().from_numpy(theta).to(self.dtype))
 
-    def _hidden(self, params, x):
-        """The last hidden layer's activations (n, w) of x (n, n_in), in ``dtype``."""
-        torch = load_torch()
-        h = x.to(self.dtype)
-        for matrix in params:
-            h = self.activation(torch.addmm(matrix[-1], h, matrix[:-1]))
-        return h
-
-    @staticmethod
-    def _solve_output(h, y):
-        """Least-squares output (w + 1, n_out) of activations h (n, w) for targets y, in
-        double."""
-        torch = load_torch()
-        a = torch.cat([h.double(), torch.ones(len(h), 1, dtype=torch.float64)], 1)
-        gram = a.T @ a
-        gram.diagonal().add_(RIDGE * len(h))
-        return torch.linalg.solve(gram, a.T @ y)
-
     def loss_and_gradient(self, x, y):
         """f(theta) → (MSE on (x, y) plus the ridge term, its gradient).
 
@@ -158,11 +140,14 @@ class ProjectedMLP:
         return evaluate
 
     def output_for(self, theta, x, y):
-        """The output weights (w + 1, n_out) for ``theta`` (cached from the last solve)."""
+        """The output weights (w + 1, n_out) for ``theta`` (cached from the last solve; else
+        one evaluation on (x, y) solves them, NaN where it diverged)."""
         if self.cached is None or not np.array_equal(self.cached[0], theta):
-            with load_torch().no_grad():
-                h = self._hidden(self._unpack(theta), x)
-                self.cached = (theta.copy(), self._solve_output(h, y))
+            value, _ = self.loss_and_gradient(x, y)(theta)
+            if not np.isfinite(value):  # nothing solved: the validation error says so
+                torch = load_torch()
+                return torch.full((self.shapes[-1][1] + 1, y.shape[1]), float("nan"),
+                                  dtype=torch.float64)
         return self.cached[1]
 
     def set(self, theta, out) -> None:

@@ -44,7 +44,14 @@ from .chart_fit import chart_workers, fit_charts, n_chart_workers, warm_up
 from .charts import ChartDecomposition
 from .errors import FitError, InvalidInputError, NotFittedError, ReconstructionWarning
 from .io import one_line, read_state, write_state
-from .join import chart_samples, exterior_votes, implicit_mesh, orient_charts, thin_shell
+from .join import (
+    chart_samples,
+    exterior_votes,
+    implicit_mesh,
+    orient_charts,
+    thin_shell,
+    vertex_normals,
+)
 from .sdf_grid import SparseSDF
 from .sheet_graph import SheetGraph
 from .validation import check_points
@@ -219,6 +226,7 @@ class AtlasReconstructor(BaseEstimator):
         self.charts_ = [fitted[i][0] for i in order]
         self.chart_points_ = [fitted[i][1] for i in order]
         self._chart_ids = order
+        self.__dict__.pop("_owners", None)
         self.timings_["fits"] = time.perf_counter() - started - self.timings_["charts"]
         self.signs_ = orient_charts([c.mesh_ for c in self.charts_], self.chart_points_, points)
         self._join()
@@ -298,21 +306,18 @@ class AtlasReconstructor(BaseEstimator):
         chart is outside and whether the cloud is closed (`fit`); `remesh` keeps the fit's."""
         started = time.perf_counter()
         meshes = [c.mesh_ for c in self.charts_]
-        labels = self.decomposition_.labels_.copy()
-        # points of charts that did not fit belong to none
-        labels[~np.isin(labels, self._chart_ids)] = -1
-        remap = {old: new for new, old in enumerate(self._chart_ids)}
-        labels = np.array([remap.get(int(label), -1) for label in labels])
+        if "_owners" not in self.__dict__:  # kept for re-meshing (a fit drops it)
+            self._owners = self._chart_owners()
+        labels, tree = self._owners
         kept = chart_samples(meshes, labels, self.points_,
-                             reach=self.reach * self.decomposition_.spacing_)
+                             reach=self.reach * self.decomposition_.spacing_, tree=tree)
         voxel = self.voxel * self.decomposition_.spacing_
         chart_samples_ = [m.vertices[k] for m, k in zip(meshes, kept, strict=True)]
-        chart_normals = [s * m.vertex_normals[k]
-                         for m, k, s in zip(meshes, kept, self.signs_, strict=True)]
+        unturned = vertex_normals(meshes, kept)
+        chart_normals = [s * n for n, s in zip(unturned, self.signs_, strict=True)]
         if decide or not hasattr(self, "shells_"):
             self._decide_sides(chart_samples_, chart_normals, kept, voxel)
-            chart_normals = [s * m.vertex_normals[k]
-                             for m, k, s in zip(meshes, kept, self.signs_, strict=True)]
+            chart_normals = [s * n for n, s in zip(unturned, self.signs_, strict=True)]
         samples, normals, kept_open = [], [], []
         for s, n, shell, far_face in zip(chart_samples_, chart_normals, self.shells_,
                                          self.thin_, strict=True):
@@ -337,6 +342,16 @@ class AtlasReconstructor(BaseEstimator):
             warnings.warn("the cloud looks closed (its charts face out of one volume) but the "
                           "joined mesh is not watertight", ReconstructionWarning, stacklevel=3)
         self.timings_["join"] = time.perf_counter() - started
+
+    def _chart_owners(self):
+        """(n,) the chart (index into ``charts_``) of each input point, −1 where its chart did
+        not fit, and a cKDTree of the points that have one."""
+        from scipy.spatial import cKDTree
+
+        lookup = np.full(int(self.decomposition_.labels_.max(initial=-1)) + 2, -1)
+        lookup[np.asarray(self._chart_ids, int)] = np.arange(len(self._chart_ids))
+        labels = lookup[self.decomposition_.labels_]  # label −1 reads the last entry, −1
+        return labels, cKDTree(self.points_[labels >= 0])
 
     def _decide_sides(self, chart_samples_, chart_normals, kept, voxel) -> None:
         """Set ``closed_``, ``seal_``, ``votes_``, ``shells_`` and ``thin_`` (c,) bool and turn

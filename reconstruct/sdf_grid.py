@@ -152,7 +152,7 @@ class SparseSDF:
         tolerance = 1e-9 * self.voxel if self.tolerance is None else self.tolerance
         if len(samples) == 0 or len(self.samples_) == 0:
             return np.ones(len(samples), bool), np.ones(len(self.samples_), bool)
-        gap, match = cKDTree(self.samples_).query(samples, distance_upper_bound=2 * tolerance)
+        gap, match = self.tree_.query(samples, distance_upper_bound=2 * tolerance)
         same = gap <= tolerance
         same[same] = np.all(np.abs(normals[same] - self.normals_[match[same]])
                             <= tolerance / self.voxel, axis=1)

@@ -42,6 +42,7 @@ from sklearn.base import BaseEstimator
 
 from .chart_fit import chart_workers, fit_charts, n_chart_workers, warm_up
 from .charts import ChartDecomposition
+from .closed_grid import ClosedSDF
 from .errors import FitError, InvalidInputError, NotFittedError, ReconstructionWarning
 from .io import one_line, read_state, write_state
 from .join import (
@@ -331,7 +332,7 @@ class AtlasReconstructor(BaseEstimator):
         uncharted = (lambda: self._uncharted(samples)) if self.closed_ else None
         self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim,
                                    closed=self.closed_, seal=self.seal_, uncharted=uncharted,
-                                   grid=self.__dict__.setdefault("_sdf", SparseSDF(voxel)),
+                                   grid=self._join_grid(voxel),
                                    kept_open=kept_open if kept_open.any() else None)
         self.samples_, self.normals_ = samples, normals
         if decide or not (self._sdf.hit_ and hasattr(self, "euler_")):  # else the same mesh
@@ -342,6 +343,14 @@ class AtlasReconstructor(BaseEstimator):
             warnings.warn("the cloud looks closed (its charts face out of one volume) but the "
                           "joined mesh is not watertight", ReconstructionWarning, stacklevel=3)
         self.timings_["join"] = time.perf_counter() - started
+
+    def _join_grid(self, voxel: float) -> SparseSDF | ClosedSDF:
+        """The join's grid kept between re-meshes (`implicit_mesh`): of the closed kind for a
+        closed cloud."""
+        kind = ClosedSDF if self.closed_ else SparseSDF
+        if not isinstance(self.__dict__.get("_sdf"), kind):
+            self._sdf = kind(voxel)
+        return self._sdf
 
     def _chart_owners(self):
         """(n,) the chart (index into ``charts_``) of each input point, −1 where its chart did
@@ -438,9 +447,9 @@ class AtlasReconstructor(BaseEstimator):
 
         Each chart keeps the grid spacing it was fitted with (`fit` sets its ``grid_spacing``),
         and its grid lies on the lattice of that spacing, so a new outline moves only the
-        vertices near it; the join re-evaluates its distance only near the samples that moved
-        (`SparseSDF.update`) and gives back the same mesh when none of its samples did (an
-        outline change that stays in the charts' overlap rings)."""
+        vertices near it; the join re-evaluates its grid only round the samples that moved
+        (`SparseSDF.update`, `ClosedSDF.update` when closed) and gives back the same mesh when
+        none of its samples did (an outline change that stays in the charts' overlap rings)."""
         if not hasattr(self, "charts_"):
             raise NotFittedError("fit() the atlas first")
         started = time.perf_counter()
@@ -466,8 +475,9 @@ class AtlasReconstructor(BaseEstimator):
         (embedded points, ONNX map, parameters, boundary samples; arrays ``chart<i>_*``), the
         cloud ``points`` (n, 3), its partition ``labels`` (n,), the ``chart_points`` of each
         chart (flat, cut at ``chart_offsets``) and the ``signs`` (c,) — what re-joining needs,
-        and no network — and the join's grid and last mesh (`SparseSDF.state`, ``join_*``), so
-        a loaded atlas re-meshes incrementally too."""
+        and no network — and the join's last samples and mesh (`SparseSDF.state` with its grid,
+        so a loaded open atlas re-meshes incrementally too; `ClosedSDF.state` without: a closed
+        one's first re-mesh that moves a sample evaluates its grid afresh), ``join_*``."""
         if not hasattr(self, "charts_"):
             raise NotFittedError("nothing to save: fit() the atlas first")
         charts, arrays = [], {}
@@ -486,7 +496,7 @@ class AtlasReconstructor(BaseEstimator):
             "closed": bool(self.closed_),
             "seal": float(self.seal_),
         }
-        if hasattr(self, "_sdf") and hasattr(self._sdf, "values_"):
+        if hasattr(self, "_sdf") and hasattr(self._sdf, "samples_"):
             meta["join"], join_arrays = self._sdf.state(prefix="join_")
             arrays.update(join_arrays)
         sizes = [len(members) for members in self.chart_points_]
@@ -534,7 +544,8 @@ class AtlasReconstructor(BaseEstimator):
             raise ValueError("its thin parts and shells do not agree")
         self.timings_ = {}
         if "join" in meta:  # the join's grid and last mesh: the first re-mesh is incremental
-            self._sdf = SparseSDF.from_state(meta["join"], arrays, prefix="join_")
+            kind = ClosedSDF if meta["join"].get("kind") == "closed" else SparseSDF
+            self._sdf = kind.from_state(meta["join"], arrays, prefix="join_")
         return self
 
     def save(self, path: str | os.PathLike) -> Path:

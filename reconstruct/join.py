@@ -25,12 +25,11 @@ samples and extracts its zero level with scikit-image's marching cubes.
   the grid is opened and smoothed by a voxel (no sub-voxel tunnels; not in front of the
   ``kept_open`` samples, the shells of thin parts across a narrow gap), and vertices where
   two sheets touch are split (`split_nonmanifold`): the mesh is the boundary of a volume,
-  watertight.
+  watertight. The grid is `reconstruct.closed_grid.ClosedSDF`'s, re-evaluated on a re-mesh
+  only round the samples that changed.
 """
 
 from __future__ import annotations
-
-import hashlib
 
 import numpy as np
 import trimesh
@@ -42,24 +41,9 @@ from scipy.sparse.csgraph import (
 )
 from scipy.spatial import cKDTree
 
-from .sdf_grid import SparseSDF, imls
+from .closed_grid import ClosedSDF, exterior_of, grid_box, occupancy
+from .sdf_grid import SparseSDF
 
-#: Voxels from the nearest sample within which a closed join trusts the tangent planes alone.
-_TRUSTED = 1.0
-#: A closed join also trusts the planes at a node straight in front of its nearest sample (within
-#: this many voxels of the sample's normal line, outside the planes): the closing, which fills
-#: every void narrower than twice the seal, is meant for the holes beside the samples, not for
-#: the space their normals face. bench.atlas 20k seed 0, Chamfer without / with (1 voxel): mug
-#: 0.278 / 0.237, torus 0.123 / 0.103, figurine 0.165 / 0.153, hook 0.239 / 0.221, topology
-#: unchanged; 0.5 voxel: mug 0.273, torus 0.117; 2 voxels: figurine Euler 4 (object 2).
-_FRONT = 1.0
-#: A closed join opens its signed grid (grey opening, a cube of this many voxels: thin voids
-#: between two solids, sub-voxel tunnels, go) and smooths it (Gaussian, this many voxels)
-#: before marching cubes. Cached 20k charts at σ 0.5 %, Euler with neither / with both:
-#: figurine −28 / 2 (object 2; Chamfer 0.177 / 0.166, denoise 0.58 / 0.36), hook 2 / 2,
-#: torus 0 / 0.
-_OPEN = 3
-_SMOOTH = 0.8
 #: Threads of the KD-tree queries of `chart_samples` (a re-mesh's; the machine has 2 cores).
 QUERY_THREADS = 2
 
@@ -161,68 +145,23 @@ def orient_charts(meshes, charts, points) -> np.ndarray:
     return signs
 
 
-def _grid(samples: np.ndarray, voxel: float, pad: float):
-    """Origin (3,) and shape (3,) of a grid of spacing ``voxel`` round ``samples`` (m, 3)."""
-    origin = samples.min(axis=0) - pad * voxel
-    shape = np.ceil((samples.max(axis=0) + pad * voxel - origin) / voxel).astype(int) + 1
-    return origin, shape
-
-
 def exterior_grid(samples, voxel: float, band: float = 3.0, normals=None, pad=None,
                   extra=None):
     """Which nodes of a grid round ``samples`` (m, 3) lie outside the sampled surface.
 
     A node farther than ``band`` voxels from every sample is *free*; the free nodes connected
-    to the grid's border are exterior. A free pocket enclosed by the samples (the inside of a
-    closed object, or a concave nook the band closed off) is exterior when the nearest
-    samples' tangent planes, oriented by ``normals`` (m, 3), put most of its nodes in front
-    (without normals: never). ``extra`` (p, 3): points that occupy the grid like samples
-    (data no chart represents), outside the grid ignored. Returns origin (3,), shape (3,),
-    exterior and free, bool arrays of ``shape``."""
+    to the grid's border are exterior, and so is a pocket the samples' tangent planes, oriented
+    by ``normals`` (m, 3), mostly put in front (`reconstruct.closed_grid.exterior_of`).
+    ``extra`` (p, 3): points that occupy the grid like samples (data no chart represents),
+    outside the grid ignored. Returns origin (3,), shape (3,), exterior and free, bool arrays
+    of ``shape``."""
     from scipy import ndimage
 
     samples = np.asarray(samples, float)
-    origin, shape = _grid(samples, voxel, band + 3 if pad is None else pad)
-    occupied = np.zeros(shape, bool)
-    occupied[tuple(np.floor((samples - origin) / voxel + 0.5).astype(int).T)] = True
-    if extra is not None and len(extra):
-        nodes = np.floor((np.asarray(extra, float) - origin) / voxel + 0.5).astype(int)
-        occupied[tuple(nodes[np.all((nodes >= 0) & (nodes < shape), axis=1)].T)] = True
+    origin, shape = grid_box(samples, voxel, band + 3 if pad is None else pad)
+    occupied = occupancy(samples, extra, origin, shape, voxel)
     free = ndimage.distance_transform_edt(~occupied) > band
-    pieces, _ = ndimage.label(free)
-    faces = [pieces[0], pieces[-1], pieces[:, 0], pieces[:, -1], pieces[:, :, 0],
-             pieces[:, :, -1]]
-    outside = np.unique(np.concatenate([f.ravel() for f in faces]))
-    outside = outside[outside > 0]
-    if normals is not None and pieces.max() > 0:
-        enclosed = free & ~np.isin(pieces, outside)
-        if enclosed.any():
-            nodes, label = _voters(np.argwhere(enclosed), pieces[enclosed])
-            nearest = cKDTree(samples).query(origin + voxel * nodes)[1]
-            front = np.einsum("gi,gi->g", origin + voxel * nodes - samples[nearest],
-                              np.asarray(normals, float)[nearest]) > 0
-            share = np.bincount(label, front, minlength=pieces.max() + 1) / np.maximum(
-                np.bincount(label, minlength=pieces.max() + 1), 1)
-            outside = np.union1d(outside, np.flatnonzero(share > 0.5))
-    return origin, shape, np.isin(pieces, outside) & free, free
-
-
-#: Nodes of one enclosed pocket that vote on its side (`exterior_grid`), evenly taken: its share
-#: in front to about ±1 %. All of a torus's inside (181,604 nodes) took 0.8 s of a 1.9 s re-mesh.
-_VOTERS = 4096
-
-
-def _voters(nodes: np.ndarray, label: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """At most `_VOTERS` of the ``nodes`` (g, 3) of each pocket ``label`` (g,), every k-th in
-    grid order; returns (nodes, label) of those."""
-    counts = np.bincount(label)
-    order = np.argsort(label, kind="stable")
-    first = np.cumsum(counts) - counts
-    rank = np.arange(len(order)) - first[label[order]]
-    step = -(-counts // _VOTERS)
-    keep = order[rank % step[label[order]] == 0]
-    keep.sort()
-    return nodes[keep], label[keep]
+    return origin, shape, exterior_of(free, origin, voxel, samples, normals), free
 
 
 def exterior_votes(chart_samples_, chart_normals, voxel: float, band: float = 3.0):
@@ -262,7 +201,7 @@ def thin_shell(samples, normals, half: float):
 def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float = 1.5,
                   min_share: float = 0.005, data=None, hole: float = 12.0,
                   closed: bool = False, seal: float | None = None,
-                  uncharted=None, grid: SparseSDF | None = None,
+                  uncharted=None, grid: SparseSDF | ClosedSDF | None = None,
                   kept_open=None) -> trimesh.Trimesh:
     """One mesh through oriented samples (m, 3) with unit normals (m, 3).
 
@@ -282,62 +221,35 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     uncharted : (p, 3) data points no chart's samples represent (a junction the charts left
     out): in a closed join they occupy the grid like samples, so the cap across their gap
     passes by them (or a callable giving them, called only when the mesh is built);
-    grid : a `SparseSDF` kept between calls: the distance is re-evaluated only near the samples
-    that changed since, and the same samples give back the same mesh at once (then its
-    ``hit_`` is True);
+    grid : a `SparseSDF` (open) or `reconstruct.closed_grid.ClosedSDF` (closed) kept between
+    calls: the grid is re-evaluated only round the samples that changed since, and the same
+    samples give back the same mesh at once (then its ``hit_`` is True); one of the other kind
+    is ignored;
     kept_open : (m,) bool, in a closed join: samples whose front (the nodes straight in front
-    of them, `_FRONT`) the grey opening may not fill: both faces of the shells of thin parts
-    facing data left out of the charts (`reconstruct.atlas`; the far face matters: the void in
-    front of it is a gap between sheets a few voxels wide, not a crack to seal; the near face
-    faces the outside anyway)."""
+    of them, `reconstruct.closed_grid._FRONT`) the grey opening may not fill: both faces of
+    the shells of thin parts facing data left out of the charts (`reconstruct.atlas`; the far
+    face matters: the void in front of it is a gap between sheets a few voxels wide, not a
+    crack to seal; the near face faces the outside anyway)."""
     from skimage.measure import marching_cubes  # scikit-image: only on the joining path
 
     samples = np.asarray(samples, float)
     normals = np.asarray(normals, float)
-    sdf = SparseSDF(voxel, band) if grid is None else grid
+    kind = ClosedSDF if closed else SparseSDF
+    sdf = grid if isinstance(grid, kind) else kind(voxel, band)
     sdf.voxel, sdf.band = voxel, band
-    sdf.follow(samples, normals)
-    key = (trim, min_share, hole, closed, seal, None if kept_open is None
-           else hashlib.sha1(np.packbits(np.asarray(kept_open, bool))).hexdigest())
+    if closed:
+        sdf.seal = seal
+        sdf.follow(samples, normals, kept_open, uncharted)
+    else:
+        sdf.follow(samples, normals)
+    key = (trim, min_share, hole, closed, seal)
     sdf.hit_ = bool(data is None and sdf.n_changed_ == 0
                     and getattr(sdf, "mesh_key_", None) == key)
     if sdf.hit_:
         return sdf.mesh_.copy(include_cache=True)  # the same samples: the same mesh
     tree = sdf.tree_
     if closed:
-        from scipy import ndimage
-
-        seal = band if seal is None else seal
-        origin, shape, exterior, free = exterior_grid(samples, voxel, seal, normals,
-                                                      extra=uncharted() if callable(uncharted)
-                                                      else uncharted)
-        axes = [origin[i] + voxel * np.arange(shape[i]) for i in range(3)]
-        nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-        near = ~free.ravel()
-        # The closing of the samples by the seal (Serra 1982): seal voxels in from the exterior.
-        # It caps a gap between the samples near their level instead of at the seal's edge.
-        values = np.clip(seal * voxel - voxel * ndimage.distance_transform_edt(~exterior),
-                         -(band + 1) * voxel, (band + 1) * voxel).ravel()
-        planes, d, index = imls(nodes[near], samples, normals, tree, voxel, return_index=True)
-        # the tangent planes within a voxel of a sample, the closing from two on, except straight
-        # in front of the nearest sample (outside the planes), where the planes hold
-        blend = np.clip(d[:, 0] / voxel - _TRUSTED, 0.0, 1.0)
-        nearest = index[:, 0]
-        ahead = np.einsum("gi,gi->g", nodes[near] - samples[nearest], normals[nearest])
-        lateral = np.sqrt(np.maximum(d[:, 0] ** 2 - ahead**2, 0.0))
-        front = (ahead > 0) & (lateral <= _FRONT * voxel) & (planes > 0)
-        blend[front] = 0.0
-        values[near] = (1 - blend) * planes + blend * values[near]
-        values = values.reshape(shape)
-        if _OPEN:
-            opened = ndimage.grey_opening(values, size=(_OPEN,) * 3)
-            if kept_open is not None:
-                held = np.flatnonzero(near)[front & np.asarray(kept_open, bool)[nearest]]
-                opened.flat[held] = np.maximum(opened.flat[held], values.flat[held])
-            values = opened
-        if _SMOOTH:
-            values = ndimage.gaussian_filter(values, _SMOOTH)
-        mask = None
+        values, mask, origin = sdf.values_, None, sdf.origin_
     else:
         values, mask, origin = sdf.values_, sdf.mask_, sdf.origin_
     vertices, faces, _, _ = marching_cubes(values, level=0.0, spacing=(voxel,) * 3, mask=mask,
@@ -361,9 +273,9 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         mesh = split_nonmanifold(mesh)
     else:
         mesh = close_small_holes(mesh, max_length=hole * voxel)
-    if mesh.is_watertight and mesh.volume < 0:
+    if mesh.is_watertight and signed_volume(mesh) < 0:
         mesh.invert()
-    if grid is not None and data is None:
+    if sdf is grid and data is None:
         sdf.mesh_, sdf.mesh_key_ = mesh.copy(include_cache=True), key
     return mesh
 
@@ -375,7 +287,14 @@ def _void(piece: trimesh.Trimesh, largest: trimesh.Trimesh) -> bool:
     samples under the surface, a thin part's shell meeting the charts beside it, close one
     (figurine 20k: a 600-face bubble 2 mm under an ear, Euler 4 instead of 2)."""
     return (piece is not largest and piece.is_watertight and largest.is_watertight
-            and piece.volume * largest.volume < 0)
+            and signed_volume(piece) * signed_volume(largest) < 0)
+
+
+def signed_volume(mesh: trimesh.Trimesh) -> float:
+    """The volume a closed ``mesh`` encloses, negative when its faces turn inwards (trimesh's
+    ``volume`` computes every mass property for it: 40 ms of a 45k-vertex re-mesh)."""
+    a, b, c = (np.asarray(mesh.vertices)[np.asarray(mesh.faces)[:, k]] for k in range(3))
+    return float(np.einsum("ij,ij->", a, np.cross(b, c))) / 6.0
 
 
 def split_nonmanifold(mesh: trimesh.Trimesh) -> trimesh.Trimesh:

@@ -51,6 +51,28 @@ def imls(nodes, samples, normals, tree: cKDTree, voxel: float, return_index: boo
     return (values, d, index) if return_index else (values, d)
 
 
+def changed_rows(old, old_normals, old_tree: cKDTree, samples, normals, tolerance: float,
+                 voxel: float, old_tags=None, tags=None) -> tuple[np.ndarray, np.ndarray]:
+    """(m',) bool new ``samples`` / ``normals`` (m', 3) not among the ``old`` (m, 3), and (m,)
+    bool old ones not among the new. A sample is the same when it moved by at most
+    ``tolerance``, its normal by at most ``tolerance / voxel``, its tag (``old_tags`` (m,),
+    ``tags`` (m',), if given) is equal, and no other new sample claims the same old one.
+    ``old_tree``: a cKDTree of ``old``."""
+    if len(samples) == 0 or len(old) == 0:
+        return np.ones(len(samples), bool), np.ones(len(old), bool)
+    gap, match = old_tree.query(samples, distance_upper_bound=2 * tolerance)
+    same = gap <= tolerance
+    same[same] = np.all(np.abs(normals[same] - old_normals[match[same]]) <= tolerance / voxel,
+                        axis=1)
+    if tags is not None:
+        same[same] = tags[same] == old_tags[match[same]]
+    claims = np.bincount(match[same], minlength=len(old))
+    same[same] = claims[match[same]] == 1
+    kept = np.zeros(len(old), bool)
+    kept[match[same]] = True
+    return ~same, ~kept
+
+
 class SparseSDF:
     """The IMLS distance of oriented samples on the voxel nodes near them.
 
@@ -146,21 +168,11 @@ class SparseSDF:
     # -- internals -------------------------------------------------------------------------
     def _changes(self, samples, normals):
         """(m',) bool new samples not among the old, (m,) bool old samples not among the new
-        (a sample is the same when it and its normal moved by at most ``tolerance``, and no
-        other new sample claims the same old one)."""
+        (`changed_rows`)."""
         self._old = self.samples_
         tolerance = 1e-9 * self.voxel if self.tolerance is None else self.tolerance
-        if len(samples) == 0 or len(self.samples_) == 0:
-            return np.ones(len(samples), bool), np.ones(len(self.samples_), bool)
-        gap, match = self.tree_.query(samples, distance_upper_bound=2 * tolerance)
-        same = gap <= tolerance
-        same[same] = np.all(np.abs(normals[same] - self.normals_[match[same]])
-                            <= tolerance / self.voxel, axis=1)
-        claims = np.bincount(match[same], minlength=len(self.samples_))
-        same[same] = claims[match[same]] == 1
-        kept = np.zeros(len(self.samples_), bool)
-        kept[match[same]] = True
-        return ~same, ~kept
+        return changed_rows(self.samples_, self.normals_, self.tree_, samples, normals,
+                            tolerance, self.voxel)
 
     def _candidates(self, centres: np.ndarray, radius: float) -> np.ndarray:
         """Flat indices of the nodes within ``radius`` voxels (per axis) of ``centres``."""
@@ -200,15 +212,12 @@ class SparseSDF:
                   "values": self.values_.flat[nodes], "eighth": self._eighth.flat[nodes],
                   "mask": self.mask_.flat[nodes], "samples": self.samples_,
                   "normals": self.normals_}
-        if hasattr(self, "mesh_"):
-            arrays.update(mesh_vertices=self.mesh_.vertices, mesh_faces=self.mesh_.faces)
-        return meta, {prefix + name: np.asarray(value) for name, value in arrays.items()}
+        return meta, {prefix + name: np.asarray(value)
+                      for name, value in {**arrays, **kept_mesh_arrays(self)}.items()}
 
     @classmethod
     def from_state(cls, meta: dict, arrays: dict, prefix: str = "") -> SparseSDF:
         """Rebuild a grid from `state`: `update` continues from it."""
-        import trimesh
-
         self = cls(**meta["params"])
         self.origin_ = np.asarray(arrays[prefix + "origin"], float)
         self.shape_ = np.asarray(arrays[prefix + "shape"], np.int64)
@@ -226,8 +235,22 @@ class SparseSDF:
         self.reach_ = float(meta["reach"])
         self.n_evaluated_ = self.n_changed_ = 0
         self._fitted_with = (self.voxel, self.band, self.pad, self.tolerance)
-        if prefix + "mesh_vertices" in arrays:
-            self.mesh_ = trimesh.Trimesh(arrays[prefix + "mesh_vertices"],
-                                         arrays[prefix + "mesh_faces"], process=False)
-            self.mesh_key_ = tuple(meta["mesh_key"])
+        restore_kept_mesh(self, meta, arrays, prefix)
         return self
+
+
+def kept_mesh_arrays(grid) -> dict[str, np.ndarray]:
+    """The last mesh a join grid keeps (``mesh_``), as arrays for its `state` (none if none)."""
+    if not hasattr(grid, "mesh_"):
+        return {}
+    return {"mesh_vertices": grid.mesh_.vertices, "mesh_faces": grid.mesh_.faces}
+
+
+def restore_kept_mesh(grid, meta: dict, arrays: dict, prefix: str) -> None:
+    """Set ``grid.mesh_`` and ``mesh_key_`` from a `state` that holds them."""
+    import trimesh
+
+    if prefix + "mesh_vertices" in arrays:
+        grid.mesh_ = trimesh.Trimesh(arrays[prefix + "mesh_vertices"],
+                                     arrays[prefix + "mesh_faces"], process=False)
+        grid.mesh_key_ = tuple(meta["mesh_key"])

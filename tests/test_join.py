@@ -4,9 +4,8 @@ between its charts, open data left open (reconstruct.join)."""
 import numpy as np
 import trimesh
 
+from reconstruct.closed_grid import _VOTERS, _voters
 from reconstruct.join import (
-    _VOTERS,
-    _voters,
     exterior_votes,
     implicit_mesh,
     split_nonmanifold,

@@ -1,0 +1,80 @@
+"""The closed join's signed grid: updated round the samples that changed, it equals a fresh one
+node for node, and it gives the same mesh (reconstruct.closed_grid)."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from reconstruct.closed_grid import ClosedSDF
+from reconstruct.join import implicit_mesh
+
+GRIDS = ["_occupied", "_free", "_exterior", "_closing", "_planes", "_nearest", "_ahead",
+         "_eighth", "_held", "_values", "values_"]
+
+
+def torus_samples(seed=0):
+    """A torus's vertices, jittered (ties between equally near samples are arbitrary), with
+    outward normals; genus 1, so the grid has a hole and an enclosed inside."""
+    torus = trimesh.creation.torus(1.0, 0.35, major_sections=96, minor_sections=48)
+    jitter = np.random.default_rng(seed).normal(0, 1e-4, torus.vertices.shape)
+    return np.asarray(torus.vertices) + jitter, np.asarray(torus.vertex_normals)
+
+
+def assert_same_grid(updated, fresh):
+    assert np.array_equal(updated.origin_, fresh.origin_)
+    for name in GRIDS:
+        np.testing.assert_array_equal(getattr(updated, name), getattr(fresh, name), err_msg=name)
+
+
+@pytest.mark.parametrize("seal", [None, 6.0])
+def test_an_update_equals_a_fresh_fit_and_evaluates_only_round_the_change(seal):
+    samples, normals = torus_samples()
+    kept_open = samples[:, 0] > 1.2  # one side's shell kept open in front
+    grid = ClosedSDF(voxel=0.05, seal=seal).fit(samples, normals, kept_open)
+    moved = samples.copy()
+    dent = np.linalg.norm(samples - [0.95, 0.95, 0], axis=1) < 0.15  # not at the box's edge
+    moved[dent] -= 0.04 * normals[dent]  # a dent on the outside
+    gone = np.linalg.norm(samples - [-1.0, 0, 0.35], axis=1) < 0.12  # a hole on the top
+    flags = kept_open.copy()
+    flags[np.argmin(np.linalg.norm(samples - [0, -1.35, 0], axis=1))] = True  # one flag set
+    keep = ~gone
+    grid.update(moved[keep], normals[keep], flags[keep])
+    fresh = ClosedSDF(voxel=0.05, seal=seal).fit(moved[keep], normals[keep], flags[keep])
+    assert grid.n_changed_ == 2 * dent.sum() + gone.sum() + 2
+    assert 0 < grid.n_evaluated_ < 0.2 * fresh.n_evaluated_
+    assert_same_grid(grid, fresh)
+
+
+def test_uncharted_points_and_a_gap_update_like_a_fresh_fit():
+    samples, normals = torus_samples(1)
+    slit = np.abs(samples[:, 1]) < 0.03  # a slit across the tube, capped by the closing
+    extra = samples[slit & (samples[:, 0] > 0)]  # data no chart holds, across one side
+    grid = ClosedSDF(voxel=0.05).fit(samples[~slit], normals[~slit], uncharted=extra)
+    refill = slit & (samples[:, 0] < 0)  # the other side's samples come back
+    keep = ~slit | refill
+    grid.update(samples[keep], normals[keep], uncharted=lambda: extra[:-3])
+    fresh = ClosedSDF(voxel=0.05).fit(samples[keep], normals[keep], uncharted=extra[:-3])
+    assert grid.n_changed_ == refill.sum()
+    assert_same_grid(grid, fresh)
+
+
+def test_the_same_samples_in_another_order_change_nothing_and_a_saved_grid_refits():
+    samples, normals = torus_samples()
+    grid = ClosedSDF(voxel=0.06)
+    first = implicit_mesh(samples, normals, voxel=0.06, closed=True, grid=grid)
+    again = implicit_mesh(samples[::-1], normals[::-1], voxel=0.06, closed=True, grid=grid)
+    assert grid.hit_ and grid.n_changed_ == 0 and grid.n_evaluated_ == 0
+    assert np.array_equal(first.vertices, again.vertices)
+    assert first.is_watertight and first.euler_number == 0  # the torus's genus
+    loaded = ClosedSDF.from_state(*grid.state(prefix="join_"), prefix="join_")
+    same = implicit_mesh(samples, normals, voxel=0.06, closed=True, grid=loaded)
+    assert loaded.hit_ and np.array_equal(same.vertices, first.vertices)
+    dent = np.linalg.norm(samples - [-0.95, 0.95, 0.3], axis=1) < 0.15
+    bumped = samples - 0.03 * normals * dent[:, None]
+    updated = implicit_mesh(bumped, normals, voxel=0.06, closed=True, grid=grid)
+    refitted = implicit_mesh(bumped, normals, voxel=0.06, closed=True, grid=loaded)
+    fresh = implicit_mesh(bumped, normals, voxel=0.06, closed=True)
+    assert grid.n_changed_ == 2 * dent.sum() and grid.n_evaluated_ < 0.2 * loaded.n_evaluated_
+    for mesh in (updated, refitted):
+        np.testing.assert_array_equal(mesh.vertices, fresh.vertices)
+        np.testing.assert_array_equal(mesh.faces, fresh.faces)

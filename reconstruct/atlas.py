@@ -402,8 +402,28 @@ class AtlasReconstructor(BaseEstimator):
             # faces that data and keeps the gap in front of it open
             behind = self._behind_share(chart_samples_, [t * n for t, n in zip(
                 turned, chart_normals, strict=True)], sizes, voxel)
-            self.thin_ = outward & (behind >= THIN_SHARE) & (behind * sizes >= THIN_POINTS)
+            self.thin_ = self._thin(outward, behind, sizes)
             self.shells_ |= self.thin_
+
+    def _thin(self, outward, behind, sizes) -> np.ndarray:
+        """(c,) bool charts of a thin part (`_decide_sides`): facing out with `THIN_SHARE` of
+        uncharted points behind, `THIN_POINTS` of them at least; and, spreading from those,
+        charts beside one (sharing input points) with that share behind, however small: the
+        count guards against a lone small chart's noise, and the plates' rims and their
+        junction with the foot are charted in pieces of 100–250 samples (bench.atlas sheets
+        20k, seeds 0 / 1: the gap's mid-plane outside the mesh 93.4 / 67.3 % -> 94.2 / 68.7 %;
+        no chart of the other objects is thin, so none spreads)."""
+        thin = outward & (behind >= THIN_SHARE) & (behind * sizes >= THIN_POINTS)
+        candidates = outward & (behind >= THIN_SHARE) & ~thin
+        if not (thin.any() and candidates.any()):
+            return thin
+        owners = [set(np.asarray(members).tolist()) for members in self.chart_points_]
+        while True:
+            joined = [i for i in np.flatnonzero(candidates & ~thin)
+                      if any(not owners[i].isdisjoint(owners[j]) for j in np.flatnonzero(thin))]
+            if not joined:
+                return thin
+            thin[joined] = True
 
     def _behind_share(self, chart_samples_, chart_normals, sizes, voxel) -> np.ndarray:
         """(c,) uncharted points (`_uncharted`) lying `THIN_DEPTH` voxels behind their nearest

@@ -79,13 +79,17 @@ def exterior_of(free, origin, voxel: float, samples=None, normals=None, tree=Non
     when the nearest samples' tangent planes, oriented by ``normals`` (m, 3), put most of its
     nodes in front (without normals: never). ``tree``: a cKDTree of ``samples`` (m, 3)."""
     pockets = free_pockets(free)
-    return pockets_outside(pockets, origin, voxel, samples, normals, tree)[pockets[0]] & free
+    front = None
+    if normals is not None and pockets[2] is not None:
+        tree = cKDTree(samples) if tree is None else tree
+        front = voter_sides(origin + voxel * pockets[2][0], samples, normals, tree)[1]
+    return pockets_outside(pockets, front)[pockets[0]] & free
 
 
 def free_pockets(free: np.ndarray) -> tuple:
     """The connected pieces of the ``free`` nodes: (pieces (shape) int, whether each piece
     (count + 1,; 0: none) touches the grid's border, voters: (nodes (g, 3), piece (g,)) of the
-    enclosed pieces, `_voters`)."""
+    enclosed pieces (`_voters`), or None)."""
     pieces, count = ndimage.label(free)
     faces = [pieces[0], pieces[-1], pieces[:, 0], pieces[:, -1], pieces[:, :, 0],
              pieces[:, :, -1]]
@@ -97,22 +101,25 @@ def free_pockets(free: np.ndarray) -> tuple:
     return pieces, border, voters
 
 
-def pockets_outside(pockets: tuple, origin, voxel: float, samples=None, normals=None,
-                    tree=None) -> np.ndarray:
+def voter_sides(at, samples, normals, tree: cKDTree) -> tuple[np.ndarray, np.ndarray]:
+    """For the voters at ``at`` (g, 3): the distance (g,) to their nearest sample and whether
+    they lie in front (g,) of its tangent plane."""
+    distance, nearest = tree.query(at)
+    front = np.einsum("gi,gi->g", at - samples[nearest], np.asarray(normals, float)[nearest]) > 0
+    return distance, front
+
+
+def pockets_outside(pockets: tuple, front=None) -> np.ndarray:
     """(count + 1,) bool: which of the `free_pockets` are outside: those touching the border,
-    and the enclosed ones whose voters the nearest samples' planes mostly put in front."""
+    and the enclosed ones whose voters mostly lie in ``front`` (g,) of their nearest sample
+    (`voter_sides`; None: no enclosed one)."""
     _, border, voters = pockets
-    outside = border.copy()
-    if normals is None or voters is None:
-        return outside
-    nodes, label = voters
-    tree = cKDTree(samples) if tree is None else tree
-    nearest = tree.query(origin + voxel * nodes)[1]
-    front = np.einsum("gi,gi->g", origin + voxel * nodes - samples[nearest],
-                      np.asarray(normals, float)[nearest]) > 0
+    if front is None or voters is None:
+        return border.copy()
+    label = voters[1]
     share = np.bincount(label, front, minlength=len(border)) / np.maximum(
         np.bincount(label, minlength=len(border)), 1)
-    return outside | (share > 0.5)
+    return border | (share > 0.5)
 
 
 def _voters(nodes: np.ndarray, label: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -212,7 +219,8 @@ class ClosedSDF:
         self._occupied = occupancy(self.samples_, extra, self.origin_, self.shape_, voxel)
         self._free = ndimage.distance_transform_edt(~self._occupied) > seal
         self._pockets = free_pockets(self._free)
-        self._outside = self._pockets_outside()
+        self._voting = self._vote()
+        self._outside = pockets_outside(self._pockets, self._voting[1])
         self._exterior = self._outside[self._pockets[0]] & self._free
         self._closing = self._closing_of(self._exterior)
         self._planes, self._nearest, self._ahead, self._eighth = (np.zeros(shape)
@@ -256,7 +264,10 @@ class ClosedSDF:
         flipped = self._update_free(cells)
         if len(flipped):  # the pockets may have joined or parted
             self._pockets = free_pockets(self._free)
-        outside = self._pockets_outside()
+            self._voting = self._vote()
+        else:  # the same voters: again only those a moved sample may be nearest to now
+            self._voting = self._vote(moved)
+        outside = pockets_outside(self._pockets, self._voting[1])
         if len(flipped) or not np.array_equal(outside, self._outside):
             self._outside = outside
             exterior = outside[self._pockets[0]] & self._free
@@ -279,9 +290,23 @@ class ClosedSDF:
                            else np.asarray(kept_open, bool))
         self.tree_ = cKDTree(self.samples_)
 
-    def _pockets_outside(self) -> np.ndarray:
-        return pockets_outside(self._pockets, self.origin_, self.voxel, self.samples_,
-                               self.normals_, self.tree_)
+    def _vote(self, moved=None) -> tuple:
+        """`voter_sides` of the pockets' voters (None, None without any): all, or with
+        ``moved`` samples (q, 3) again only the voters a moved one is as near as their nearest
+        was (their nearest sample may have changed)."""
+        voters = self._pockets[2]
+        if voters is None:
+            return None, None
+        at = self.origin_ + self.voxel * voters[0]
+        if moved is None or self._voting[0] is None:
+            return voter_sides(at, self.samples_, self.normals_, self.tree_)
+        distance, front = self._voting[0].copy(), self._voting[1].copy()
+        again = cKDTree(moved).query(at, distance_upper_bound=float(distance.max()) * (1 + 1e-9)
+                                     )[0] <= distance
+        if again.any():
+            distance[again], front[again] = voter_sides(at[again], self.samples_,
+                                                        self.normals_, self.tree_)
+        return distance, front
 
     @property
     def _tolerance(self) -> float:

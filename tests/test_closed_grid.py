@@ -24,6 +24,9 @@ def assert_same_grid(updated, fresh):
     assert np.array_equal(updated.origin_, fresh.origin_)
     for name in GRIDS:
         np.testing.assert_array_equal(getattr(updated, name), getattr(fresh, name), err_msg=name)
+    assert updated._pockets[2] is not None  # the torus's inside: an enclosed pocket that votes
+    for kept, new in zip(updated._voting, fresh._voting, strict=True):
+        np.testing.assert_array_equal(kept, new)
 
 
 @pytest.mark.parametrize("seal", [None, 6.0])

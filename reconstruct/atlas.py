@@ -11,7 +11,7 @@ leaves at most `UNEXPLAINED_LIMIT` of its points unexplained and does not fold o
 (`fold_share`); otherwise the chart is split and fitted again (at most ``max_splits`` times
 along one line of descent).
 The accepted charts' meshes, trimmed to a partition of the cloud, oriented alike (along their
-overlaps, and by which side of each is outside: `reconstruct.join.exterior_votes`) and joined by
+overlaps, and by which side of each is outside: `reconstruct.chart_sides`) and joined by
 `reconstruct.join.implicit_mesh`, give ``mesh_``: when the charts enclose a volume, its
 boundary (watertight; a part thinner than the noise, charted as one sheet, as a thin shell, and
 so a thin part charted on one face with the data of its far face left out of the charts just
@@ -20,10 +20,11 @@ apart; a warning if it still is not watertight); otherwise open where the data h
 or a hole wider than a few spacings.
 
 `remesh(lam=..., depth=...)` re-meshes every chart through its stored ONNX map (no retraining)
-and joins them again, re-evaluating the join's distance only near the samples that moved
-(`reconstruct.sdf_grid`). `save` / `load` (and `SurfaceReconstructor.save` / `load` of an atlas)
-carry the charts' maps, the partition, the signs and the join's grid to another process, where
-`remesh` runs without torch.
+and joins them again, re-evaluating the join's grid only round the samples that moved
+(`reconstruct.sdf_grid`, `reconstruct.closed_grid`). `save` / `load` (and
+`SurfaceReconstructor.save` / `load` of an atlas) carry the charts' maps, the partition, the
+signs and the join's last samples and mesh to another process, where `remesh` runs without
+torch.
 """
 
 from __future__ import annotations
@@ -41,13 +42,13 @@ import trimesh
 from sklearn.base import BaseEstimator
 
 from .chart_fit import chart_workers, fit_charts, n_chart_workers, warm_up
+from .chart_sides import ChartSides, uncharted_points
 from .charts import ChartDecomposition
 from .closed_grid import ClosedSDF
 from .errors import FitError, InvalidInputError, NotFittedError, ReconstructionWarning
 from .io import one_line, read_state, write_state
 from .join import (
     chart_samples,
-    exterior_votes,
     implicit_mesh,
     orient_charts,
     thin_shell,
@@ -63,26 +64,6 @@ ATLAS_FORMAT = "scanstation-atlas/1"
 #: Parameters of the fit only (a loaded atlas re-meshes, it does not fit): not saved.
 _FIT_ONLY_PARAMS = ("graph", "n_jobs", "hidden_layers", "n_neighbors")
 
-#: A chart faces out of the object when its exterior vote (`join.exterior_votes`) is this clear.
-VOTE_LIMIT = 0.5
-#: Input points farther than this (median spacings) from every joined sample are uncharted.
-UNCHARTED = 1.0
-#: A chart facing out is a thin part charted on one face when uncharted points lie behind this
-#: share of its samples (`AtlasReconstructor._behind_share`; seed 0 / 1 share 0.04: sheets F
-#: 0.980 / 0.964, 0.09: 0.978 / 0.956): its far face, left out by the
-#: sheet graph (points between two sheets join neither), faces a gap. bench.atlas 20k seed 0
-#: (1 for sheets): the plates' charts 0.06-0.14, no chart of mug, figurine, hook, torus over
-#: 0.051 (figurine's curled ears, already shells, up to 0.09), nor at seed 1 (figurine 0.049,
-#: mug 0.049 beside one small chart: `THIN_POINTS`).
-THIN_SHARE = 0.06
-#: Behind a sample: between these many voxels deep (the noise's near side is no evidence).
-THIN_DEPTH = (1.0, 3.0)
-#: ... and at least this many uncharted points behind it (a small chart's share is noise: mug
-#: 20k seed 1, a 132-point chart at 0.118 was shelled, Euler -2 against 0; sheets seed 0 / 1
-#: F 0.980 / 0.962 without, 0.979 / 0.960 with 25, 0.976 / 0.957 with 50).
-THIN_POINTS = 25
-#: The cloud is closed when charts facing clearly out hold this share of the join's samples.
-CLOSED_SHARE = 0.5
 #: Charts re-meshed at once, in threads (ONNX Runtime, GEOS and qhull release the GIL): torus
 #: 22k, 37 charts, 2 cores: 266 -> 187 ms.
 REMESH_THREADS = 2
@@ -134,7 +115,7 @@ class AtlasReconstructor(BaseEstimator):
     ``watertight_``, ``euler_``, ``winding_consistent_``, ``timings_`` seconds per stage,
     ``votes_`` (c,) each chart's exterior vote (with a band of ``seal_`` voxels), ``shells_``
     (c,) charts joined as thin shells, ``thin_`` (c,) those of them charted on one face of a thin
-    part (`THIN_SHARE`), ``closed_``
+    part (`reconstruct.chart_sides`), ``closed_``
     whether the cloud was joined as the boundary of a volume (then a mesh that is not
     watertight is warned about).
     """
@@ -317,7 +298,12 @@ class AtlasReconstructor(BaseEstimator):
         unturned = vertex_normals(meshes, kept)
         chart_normals = [s * n for n, s in zip(unturned, self.signs_, strict=True)]
         if decide or not hasattr(self, "shells_"):
-            self._decide_sides(chart_samples_, chart_normals, kept, voxel)
+            sides = ChartSides(band=self.band, closed=self.closed).fit(
+                chart_samples_, chart_normals, self.points_, self.decomposition_.spacing_,
+                voxel, self.chart_points_)
+            self.closed_, self.seal_, self.votes_ = sides.closed_, sides.seal_, sides.votes_
+            self.shells_, self.thin_ = sides.shells_, sides.thin_
+            self.signs_ = self.signs_ * sides.turns_
             chart_normals = [s * n for n, s in zip(unturned, self.signs_, strict=True)]
         samples, normals, kept_open = [], [], []
         for s, n, shell, far_face in zip(chart_samples_, chart_normals, self.shells_,
@@ -329,7 +315,9 @@ class AtlasReconstructor(BaseEstimator):
             kept_open.append(np.full(len(s), bool(far_face)))  # both faces of its shell
         samples, normals = np.concatenate(samples), np.concatenate(normals)
         kept_open = np.concatenate(kept_open)
-        uncharted = (lambda: self._uncharted(samples)) if self.closed_ else None
+        spacing = self.decomposition_.spacing_
+        uncharted = ((lambda: uncharted_points(self.points_, samples, spacing)) if self.closed_
+                     else None)
         self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim,
                                    closed=self.closed_, seal=self.seal_, uncharted=uncharted,
                                    grid=self._join_grid(voxel),
@@ -361,105 +349,6 @@ class AtlasReconstructor(BaseEstimator):
         lookup[np.asarray(self._chart_ids, int)] = np.arange(len(self._chart_ids))
         labels = lookup[self.decomposition_.labels_]  # label −1 reads the last entry, −1
         return labels, cKDTree(self.points_[labels >= 0])
-
-    def _decide_sides(self, chart_samples_, chart_normals, kept, voxel) -> None:
-        """Set ``closed_``, ``seal_``, ``votes_``, ``shells_`` and ``thin_`` (c,) bool and turn
-        ``signs_``.
-
-        Which side of each chart is outside the object (`exterior_votes`): a closed cloud's
-        charts say so clearly (mug, torus, hook, figurine 20k: 81–100 % of the samples); an
-        open one's, seen from both sides, do not (relief: none). A hole in the samples wider
-        than twice the band (points the sheet graph left out) lets the outside in and every
-        chart looks two-sided: a wider seal is tried too.
-
-        Two plates a few noise widths apart (sheets: 1.5 mm plates 3 mm apart at σ 0.75 mm)
-        look like one slab to the votes: the gap is narrower than twice the band, each plate is
-        charted on its outer face (the sheet graph leaves the points of the faces towards the
-        gap out) and both charts face out. The data behind such a chart, uncharted, tells it
-        apart from a slab's face (the mug's 4 mm wall: no data inside): it is `thin_`, a shell
-        whose far face keeps the gap open (bench.atlas sheets 20k, seeds 0 / 1: F 0.960 /
-        0.928 -> 0.979 / 0.960, the gap's mid-plane outside the mesh 0 -> 92 % / 68 %)."""
-        sizes = np.array([len(k) for k in kept], float)
-        for seal in (self.band, 2 * self.band):
-            votes, two_sided = exterior_votes(chart_samples_, chart_normals, voxel, band=seal)
-            outward = np.abs(votes) >= VOTE_LIMIT
-            self.closed_ = bool(sizes[outward].sum() >= CLOSED_SHARE * max(sizes.sum(), 1.0))
-            if self.closed is not None:
-                self.closed_ = bool(self.closed)
-            if self.closed_ or self.closed is not None:
-                break
-        self.votes_, self.seal_ = votes, seal
-        self.shells_ = np.zeros(len(kept), bool)
-        self.thin_ = np.zeros(len(kept), bool)
-        if self.closed_:
-            # the others keep their orientation along the overlaps, turned like most charts
-            turn = np.sign(np.sum(sizes[outward] * np.sign(votes[outward]))) or 1.0
-            turned = np.where(outward, np.sign(votes), turn)
-            self.signs_ = self.signs_ * turned
-            self.shells_ = ~outward & (two_sided >= VOTE_LIMIT)
-            # a chart facing out with data left out just behind it: a thin part charted on one
-            # face (two plates a few noise widths apart), joined as a shell whose far face
-            # faces that data and keeps the gap in front of it open
-            behind = self._behind_share(chart_samples_, [t * n for t, n in zip(
-                turned, chart_normals, strict=True)], sizes, voxel)
-            self.thin_ = self._thin(outward, behind, sizes)
-            self.shells_ |= self.thin_
-
-    def _thin(self, outward, behind, sizes) -> np.ndarray:
-        """(c,) bool charts of a thin part (`_decide_sides`): facing out with `THIN_SHARE` of
-        uncharted points behind, `THIN_POINTS` of them at least; and, spreading from those,
-        charts beside one (sharing input points) with that share behind, however small: the
-        count guards against a lone small chart's noise, and the plates' rims and their
-        junction with the foot are charted in pieces of 100–250 samples (bench.atlas sheets
-        20k, seeds 0 / 1: the gap's mid-plane outside the mesh 93.4 / 67.3 % -> 94.2 / 68.7 %;
-        no chart of the other objects is thin, so none spreads)."""
-        thin = outward & (behind >= THIN_SHARE) & (behind * sizes >= THIN_POINTS)
-        candidates = outward & (behind >= THIN_SHARE) & ~thin
-        if not (thin.any() and candidates.any()):
-            return thin
-        owners = [set(np.asarray(members).tolist()) for members in self.chart_points_]
-        while True:
-            joined = [i for i in np.flatnonzero(candidates & ~thin)
-                      if any(not owners[i].isdisjoint(owners[j]) for j in np.flatnonzero(thin))]
-            if not joined:
-                return thin
-            thin[joined] = True
-
-    def _behind_share(self, chart_samples_, chart_normals, sizes, voxel) -> np.ndarray:
-        """(c,) uncharted points (`_uncharted`) lying `THIN_DEPTH` voxels behind their nearest
-        sample of each chart (against its outward normal), per sample of the chart."""
-        from scipy.spatial import cKDTree
-
-        filled = [i for i, s in enumerate(chart_samples_) if len(s)]
-        if not filled:
-            return np.zeros(len(chart_samples_))
-        every = np.concatenate([chart_samples_[i] for i in filled])
-        facing = np.concatenate([chart_normals[i] for i in filled])
-        owner = np.concatenate([np.full(len(chart_samples_[i]), i) for i in filled])
-        tree = cKDTree(every)
-        far = self._uncharted(every, tree)
-        if len(far) == 0:
-            return np.zeros(len(chart_samples_))
-        nearest = tree.query(far)[1]
-        depth = -np.einsum("ij,ij->i", far - every[nearest], facing[nearest])
-        behind = (depth > THIN_DEPTH[0] * voxel) & (depth < THIN_DEPTH[1] * voxel)
-        counts = np.bincount(owner[nearest[behind]], minlength=len(chart_samples_))
-        return counts / np.maximum(sizes, 1.0)
-
-    def _uncharted(self, samples: np.ndarray, tree=None) -> np.ndarray:
-        """Input points (p, 3) farther than ``UNCHARTED`` spacings from every sample, in
-        clusters of at least 4 within 2 spacings: data the charts left out (a junction where
-        the sheet graph cut its points off), not single noisy points. ``tree``: a cKDTree of
-        ``samples`` (m, 3) if the caller has one."""
-        from scipy.spatial import cKDTree
-
-        spacing = self.decomposition_.spacing_
-        tree = cKDTree(samples) if tree is None else tree
-        far = self.points_[tree.query(self.points_)[0] > UNCHARTED * spacing]
-        if len(far) < 4:
-            return far[:0]
-        crowd = cKDTree(far).query_ball_point(far, 2 * spacing, return_length=True)
-        return far[crowd >= 4]
 
     def remesh(self, **params) -> trimesh.Trimesh:
         """Re-mesh every chart with new ``lam``, ``depth``, ... through its ONNX map (no

@@ -11,6 +11,7 @@ import trimesh
 from joblib import effective_n_jobs
 
 from reconstruct.atlas import AtlasReconstructor
+from reconstruct.chart_sides import thin_charts
 from reconstruct.errors import (
     FitError,
     InvalidInputError,
@@ -326,17 +327,16 @@ def test_the_atlas_begun_beside_a_one_chart_search_serves_an_unexplained_cloud(m
 
 
 def test_thin_spreads_to_small_charts_beside_a_thin_one_only():
-    atlas = AtlasReconstructor()
     # charts 0-1-2 and 3-4 overlap in a chain (shared input points); chart 5 stands alone
-    atlas.chart_points_ = [np.arange(0, 110), np.arange(100, 210), np.arange(200, 310),
-                           np.arange(400, 510), np.arange(500, 610), np.arange(700, 810)]
+    chart_points = [np.arange(0, 110), np.arange(100, 210), np.arange(200, 310),
+                    np.arange(400, 510), np.arange(500, 610), np.arange(700, 810)]
     sizes = np.array([1000, 150, 150, 1000, 150, 150], float)
     behind = np.array([0.10, 0.08, 0.07, 0.01, 0.08, 0.12])
     outward = np.array([True, True, True, True, True, True])
     # chart 0 by share and count; 1 and then 2 beside it by share; 4 is beside no thin chart
     # (3 holds too little behind it) and 5, as large a share, is small and alone
-    np.testing.assert_array_equal(atlas._thin(outward, behind, sizes),
+    np.testing.assert_array_equal(thin_charts(outward, behind, sizes, chart_points),
                                   [True, True, True, False, False, False])
     outward[1] = False  # a chart that does not face out breaks the chain
-    np.testing.assert_array_equal(atlas._thin(outward, behind, sizes),
+    np.testing.assert_array_equal(thin_charts(outward, behind, sizes, chart_points),
                                   [True, False, False, False, False, False])

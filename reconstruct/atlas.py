@@ -52,6 +52,7 @@ from .join import (
     implicit_mesh,
     orient_charts,
     thin_shell,
+    topology,
     vertex_normals,
 )
 from .sdf_grid import SparseSDF
@@ -324,9 +325,7 @@ class AtlasReconstructor(BaseEstimator):
                                    kept_open=kept_open if kept_open.any() else None)
         self.samples_, self.normals_ = samples, normals
         if decide or not (self._sdf.hit_ and hasattr(self, "euler_")):  # else the same mesh
-            self.watertight_ = bool(self.mesh_.is_watertight)
-            self.winding_consistent_ = bool(self.mesh_.is_winding_consistent)
-            self.euler_ = int(self.mesh_.euler_number)
+            self.watertight_, self.winding_consistent_, self.euler_ = topology(self.mesh_.faces)
         if self.closed_ and not self.watertight_:
             warnings.warn("the cloud looks closed (its charts face out of one volume) but the "
                           "joined mesh is not watertight", ReconstructionWarning, stacklevel=3)

@@ -262,18 +262,21 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         far = near_tree.query(mesh.triangles_center)[0] > trim * voxel
         mesh.update_faces(~far)
         mesh.remove_unreferenced_vertices()
-    pieces = mesh.split(only_watertight=False) if n_pieces(mesh.faces) > 1 else [mesh]
+    runs = _edge_runs(np.asarray(mesh.faces))
+    pieces = mesh.split(only_watertight=False) if n_pieces(mesh.faces, runs) > 1 else [mesh]
     if len(pieces) > 1:
         largest = max(pieces, key=lambda p: len(p.faces))
         kept = [p for p in pieces if len(p.faces) >= min_share * len(largest.faces)]
         if closed:  # a closed piece facing the other way: a void, which no scan sees
             kept = [p for p in kept if not _void(p, largest)]
-        mesh = trimesh.util.concatenate(kept)
+        mesh, runs = trimesh.util.concatenate(kept), None
     if closed:
-        mesh = split_nonmanifold(mesh)
+        parted = split_nonmanifold(mesh, runs)
+        mesh, runs = parted, (runs if parted is mesh else None)
     else:
-        mesh = close_small_holes(mesh, max_length=hole * voxel)
-    if mesh.is_watertight and signed_volume(mesh) < 0:
+        capped = close_small_holes(mesh, max_length=hole * voxel)
+        mesh, runs = capped, (runs if capped is mesh else None)
+    if topology(np.asarray(mesh.faces), runs)[0] and signed_volume(mesh) < 0:  # watertight
         mesh.invert()
     if sdf is grid and data is None:
         sdf.mesh_, sdf.mesh_key_ = mesh.copy(include_cache=True), key
@@ -297,20 +300,18 @@ def signed_volume(mesh: trimesh.Trimesh) -> float:
     return float(np.einsum("ij,ij->", a, np.cross(b, c))) / 6.0
 
 
-def split_nonmanifold(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+def split_nonmanifold(mesh: trimesh.Trimesh, runs=None) -> trimesh.Trimesh:
     """``mesh`` with every vertex where faces meet in more than one fan (or only along an edge
     shared by more than two faces) split into one vertex per fan: where marching cubes lets two
-    sheets touch in a grid cell, they are parted. Positions are unchanged."""
+    sheets touch in a grid cell, they are parted. Positions are unchanged. ``runs``: the
+    mesh's `_edge_runs` if the caller has them."""
     faces = np.asarray(mesh.faces)
     n_faces = len(faces)
-    directed, key = _edge_keys(faces)
+    directed, order, run_start, run_length = _edge_runs(faces) if runs is None else runs
     corner_a = (3 * np.arange(n_faces)[:, None] + np.array([0, 1, 2])).ravel()
     corner_b = (3 * np.arange(n_faces)[:, None] + np.array([1, 2, 0])).ravel()
-    _, edge, counts = np.unique(key, return_inverse=True, return_counts=True)
-    edge = edge.ravel()
-    manifold = np.flatnonzero(counts[edge] == 2)
-    order = manifold[np.argsort(edge[manifold], kind="stable")]
-    first, second = order[0::2], order[1::2]  # the two half-edges of each manifold edge
+    pairs = run_start[run_length == 2]
+    first, second = order[pairs], order[pairs + 1]  # the two half-edges of each manifold edge
     # half-edge a→b of one face meets b→a of the other: join the corners at a and at b
     rows = np.concatenate([corner_a[first], corner_b[first]])
     cols = np.concatenate([corner_b[second], corner_a[second]])
@@ -335,15 +336,38 @@ def _edge_keys(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return directed, ordered[:, 0] * (int(ordered.max(initial=0)) + 1) + ordered[:, 1]
 
 
-def n_pieces(faces: np.ndarray) -> int:
+def _edge_runs(faces: np.ndarray) -> tuple:
+    """The edges of ``faces`` (f, 3) sorted once for every count of them: the half-edges
+    (3f, 2) in the faces' direction, their indices (3f,) in the order of their undirected edges,
+    and where each edge's run of half-edges starts in that order (e,) and how long it is (e,)."""
+    directed, key = _edge_keys(faces)
+    order = np.argsort(key, kind="stable")
+    ordered = key[order]
+    run_start = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]]) if len(key) else order
+    return directed, order, run_start, np.diff(np.r_[run_start, len(key)])
+
+
+def topology(faces: np.ndarray, runs=None) -> tuple[bool, bool, int]:
+    """(watertight, winding consistent, Euler characteristic) of ``faces`` (f, 3), as trimesh's
+    ``is_watertight``, ``is_winding_consistent`` and ``euler_number`` define them (every edge in
+    exactly two faces; the two run opposite ways; referenced vertices − edges + faces), from one
+    sort of the edges (trimesh's took 35 ms of a 45k-vertex re-mesh). ``runs``: `_edge_runs`."""
+    if len(faces) == 0:
+        return False, False, 0
+    directed, order, run_start, run_length = _edge_runs(faces) if runs is None else runs
+    pairs = run_start[run_length == 2]
+    winding = bool(np.all(directed[order[pairs], 1] == directed[order[pairs + 1], 0]))
+    referenced = int(np.count_nonzero(np.bincount(np.ravel(faces))))
+    return bool(np.all(run_length == 2)), winding, referenced - len(run_start) + len(faces)
+
+
+def n_pieces(faces: np.ndarray, runs=None) -> int:
     """Number of pieces of ``faces`` (f, 3) joined across edges of exactly two faces (as
-    trimesh's ``split`` counts them), found from one integer key per edge (fast)."""
+    trimesh's ``split`` counts them), found from one integer key per edge (fast). ``runs``:
+    `_edge_runs` of the faces if the caller has them."""
     if len(faces) == 0:
         return 0
-    _, key = _edge_keys(faces)
-    order = np.argsort(key, kind="stable")
-    run_start = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1]])
-    run_length = np.diff(np.r_[run_start, len(key)])
+    _, order, run_start, run_length = _edge_runs(faces) if runs is None else runs
     pairs = run_start[run_length == 2]
     first, second = order[pairs] // 3, order[pairs + 1] // 3
     adjacency = coo_matrix((np.ones(len(first)), (first, second)), shape=(len(faces),) * 2)

@@ -10,6 +10,7 @@ from reconstruct.join import (
     implicit_mesh,
     split_nonmanifold,
     thin_shell,
+    topology,
 )
 
 
@@ -145,3 +146,18 @@ def test_a_closed_join_leaves_no_void_inside_the_object():
     mesh = implicit_mesh(samples, normals, voxel=0.05, closed=True)
     assert mesh.is_watertight and mesh.euler_number == 2 and mesh.volume > 0
     assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 1).max() < 0.05
+
+
+def test_topology_reads_as_trimesh_does():
+    sphere = trimesh.creation.icosphere(2)
+    flipped = sphere.faces.copy()
+    flipped[0] = flipped[0][::-1]
+    fin = np.r_[sphere.faces, [[sphere.faces[0][0], sphere.faces[0][1], len(sphere.vertices)]]]
+    meshes = [trimesh.creation.torus(1.0, 0.3), sphere,
+              trimesh.Trimesh(sphere.vertices, sphere.faces[5:], process=False),  # holed
+              trimesh.Trimesh(sphere.vertices, flipped, process=False),  # one face turned
+              trimesh.Trimesh(np.r_[sphere.vertices, [[3.0, 0, 0]]], fin, process=False)]
+    for mesh in meshes:  # the last has an edge of three faces
+        assert topology(mesh.faces) == (mesh.is_watertight, mesh.is_winding_consistent,
+                                         mesh.euler_number)
+    assert topology(np.zeros((0, 3), int)) == (False, False, 0)

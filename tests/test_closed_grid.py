@@ -81,3 +81,16 @@ def test_the_same_samples_in_another_order_change_nothing_and_a_saved_grid_refit
     for mesh in (updated, refitted):
         np.testing.assert_array_equal(mesh.vertices, fresh.vertices)
         np.testing.assert_array_equal(mesh.faces, fresh.faces)
+
+
+def test_a_pocket_voter_is_in_front_only_if_the_nearly_as_near_samples_agree():
+    from scipy.spatial import cKDTree
+
+    from reconstruct.closed_grid import voter_sides
+
+    voter = np.zeros((1, 3))
+    for other, expected in ((1.5, False), (2.5, True)):  # within a voxel farther, or beyond
+        samples = np.array([[-1.0, 0, 0], [other, 0, 0]])  # the nearest faces the voter ...
+        normals = np.array([[1.0, 0, 0], [1.0, 0, 0]])  # ... the other puts it behind
+        distance, front = voter_sides(voter, samples, normals, cKDTree(samples), voxel=1.0)
+        assert distance[0] == 1.0 and front[0] == expected

@@ -51,6 +51,7 @@ from capture.station import true_surface
 from reconstruct.metrics import distance_to_surface, sample_surface
 from sim.awkward_objects import AWKWARD
 
+#: The vase scan's own targets (checked for the vase only).
 TARGETS = {"total_s": 60.0, "completeness": 0.95, "denoise": 0.7, "remesh_ms": 200.0}
 #: Issue 13's targets for any object: seconds in all (the vase's own: 60), precision, recall.
 OBJECT_TARGETS = {"total_s": 90.0, "precision": 0.9, "recall": 0.8}
@@ -187,14 +188,15 @@ def bench_object(obj: str, base: Path, args) -> list[dict]:
         print(f"incremental vs batch total: {ours['total_s'] / rows[1]['total_s']:.2f}×; "
               f"final mesh after the last view: {ours['final_s']:.1f} s vs "
               f"{rows[1]['final_s']:.1f} s")
-    checks = {
-        "total_s": ours["total_s"] <= TARGETS["total_s"],
-        "completeness": ours["complete_%"] / 100 >= TARGETS["completeness"],
-        "denoise": ours["denoise"] <= TARGETS["denoise"],
-        "remesh_ms": ours["remesh_ms"] <= TARGETS["remesh_ms"],
-    }
-    print("targets: " + ", ".join(f"{k} {'met' if ok else 'MISSED'} ({TARGETS[k]:g})"
-                                  for k, ok in checks.items()))
+    if obj == "vase":  # the vase's own targets; every object's are issue 13's (below)
+        checks = {
+            "total_s": ours["total_s"] <= TARGETS["total_s"],
+            "completeness": ours["complete_%"] / 100 >= TARGETS["completeness"],
+            "denoise": ours["denoise"] <= TARGETS["denoise"],
+            "remesh_ms": ours["remesh_ms"] <= TARGETS["remesh_ms"],
+        }
+        print("targets: " + ", ".join(f"{k} {'met' if ok else 'MISSED'} ({TARGETS[k]:g})"
+                                      for k, ok in checks.items()))
     print(flush=True)
     return summaries
 

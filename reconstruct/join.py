@@ -44,6 +44,11 @@ from scipy.spatial import cKDTree
 from .closed_grid import ClosedSDF, exterior_of, grid_box, occupancy
 from .sdf_grid import SparseSDF
 
+#: The revision of the join's method, part of the key of the mesh a grid keeps (and saves): an
+#: atlas saved by an earlier revision does not give its kept mesh back for the same samples (a
+#: mug saved before the pocket votes changed kept its cut handle); its first re-mesh joins
+#: afresh. Raise it when a change to the join changes its meshes.
+JOIN_REVISION = 2
 #: Threads of the KD-tree queries of `chart_samples` (a re-mesh's; the machine has 2 cores).
 QUERY_THREADS = 2
 
@@ -242,13 +247,15 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         sdf.follow(samples, normals, kept_open, uncharted)
     else:
         sdf.follow(samples, normals)
-    key = (trim, min_share, hole, closed, seal)
+    key = (JOIN_REVISION, trim, min_share, hole, closed, seal)
     sdf.hit_ = bool(data is None and sdf.n_changed_ == 0
                     and getattr(sdf, "mesh_key_", None) == key)
     if sdf.hit_:
         return sdf.mesh_.copy(include_cache=True)  # the same samples: the same mesh
     tree = sdf.tree_
     if closed:
+        if not hasattr(sdf, "values_"):  # loaded without its grid, and its mesh not kept
+            sdf.fit(samples, normals, kept_open, uncharted)
         values, mask, origin = sdf.values_, None, sdf.origin_
     else:
         values, mask, origin = sdf.values_, sdf.mask_, sdf.origin_

@@ -94,3 +94,15 @@ def test_a_pocket_voter_is_in_front_only_if_the_nearly_as_near_samples_agree():
         normals = np.array([[1.0, 0, 0], [1.0, 0, 0]])  # ... the other puts it behind
         distance, front = voter_sides(voter, samples, normals, cKDTree(samples), voxel=1.0)
         assert distance[0] == 1.0 and front[0] == expected
+
+
+def test_a_mesh_kept_by_an_earlier_revision_of_the_join_is_not_given_back():
+    samples, normals = torus_samples()
+    grid = ClosedSDF(voxel=0.06)
+    first = implicit_mesh(samples, normals, voxel=0.06, closed=True, grid=grid)
+    meta, arrays = grid.state(prefix="join_")
+    meta["mesh_key"][0] -= 1  # saved by the revision before this one
+    arrays["join_mesh_vertices"] = arrays["join_mesh_vertices"][::-1]  # a different mesh
+    older = ClosedSDF.from_state(meta, arrays, prefix="join_")
+    again = implicit_mesh(samples, normals, voxel=0.06, closed=True, grid=older)
+    assert not older.hit_ and np.array_equal(again.vertices, first.vertices)

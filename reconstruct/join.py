@@ -72,39 +72,24 @@ def chart_samples(meshes, labels, points, reach: float = np.inf, tree: cKDTree |
 
 
 def vertex_normals(meshes, kept) -> list[np.ndarray]:
-    """The unit normals (k_i, 3) of the vertices ``kept`` (k_i,) of each of ``meshes``, computed
-    for all at once: the faces' normals about a vertex weighted by their angles there
-    (Thürrner & Wüthrich 1998, as trimesh's ``vertex_normals``, which took a third of a cached
-    re-mesh's join one whole mesh at a time). Degenerate faces count for nothing."""
-    sizes = [len(mesh.vertices) for mesh in meshes]
-    offsets = np.cumsum([0, *sizes])
+    """The unit normals (k_i, 3) of the vertices ``kept`` (k_i,) of each of ``meshes``: trimesh's
+    angle-weighted vertex normals, computed once for the faces round all the kept vertices
+    (each mesh's ``vertex_normals`` took a third of a cached re-mesh's join)."""
+    from trimesh.geometry import weighted_vertex_normals
+    from trimesh.triangles import angles, normals
+
+    offsets = np.cumsum([0, *(len(mesh.vertices) for mesh in meshes)])
     vertices = np.concatenate([mesh.vertices for mesh in meshes])
     faces = np.concatenate([np.asarray(mesh.faces) + offset
                             for mesh, offset in zip(meshes, offsets, strict=False)])
     wanted = np.zeros(len(vertices), bool)
     wanted[np.concatenate([k + offset for k, offset in zip(kept, offsets, strict=False)])] = True
     faces = faces[wanted[faces].any(axis=1)]
-    a, b, c = (vertices[faces[:, corner]] for corner in range(3))
-    ab, ac, bc = b - a, c - a, c - b
-    normals = np.cross(ab, ac)
-
-    def length(vectors):
-        return np.sqrt(np.einsum("ij,ij->i", vectors, vectors))
-
-    with np.errstate(invalid="ignore", divide="ignore"):
-        l_ab, l_ac, l_bc, area = length(ab), length(ac), length(bc), length(normals)
-        first = np.arccos(np.clip(np.einsum("ij,ij->i", ab, ac) / (l_ab * l_ac), -1, 1))
-        second = np.arccos(np.clip(-np.einsum("ij,ij->i", ab, bc) / (l_ab * l_bc), -1, 1))
-        angles = np.column_stack([first, second, np.pi - first - second])
-        normals /= area[:, None]
-    # a degenerate face (an angle under trimesh's merge tolerance, or none) counts for nothing
-    angles[~(angles >= 1e-8).all(axis=1) | ~(area > 0)] = 0.0
-    normals[~(area > 0)] = 0.0
-    weighted = (angles[:, :, None] * normals[:, None, :]).reshape(-1, 3)
-    summed = np.column_stack([np.bincount(faces.ravel(), weighted[:, axis], len(vertices))
-                              for axis in range(3)])
-    norm = length(summed)
-    summed[norm > 0] /= norm[norm > 0, None]
+    triangles = vertices[faces]
+    unit, valid = normals(triangles)
+    face_normals = np.zeros((len(faces), 3))
+    face_normals[valid] = unit
+    summed = weighted_vertex_normals(len(vertices), faces, face_normals, angles(triangles))
     return [summed[k + offset] for k, offset in zip(kept, offsets, strict=False)]
 
 
@@ -384,9 +369,8 @@ def n_pieces(faces: np.ndarray, runs=None) -> int:
 def border_loops(faces: np.ndarray) -> list[np.ndarray]:
     """Closed loops (vertex indices, in the faces' direction) of the edges of ``faces`` (f, 3)
     that belong to one face only. A vertex where two loops touch is walked through once each."""
-    directed, key = _edge_keys(faces)
-    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-    border = directed[counts[inverse.ravel()] == 1]
+    directed, order, run_start, run_length = _edge_runs(faces)
+    border = directed[np.sort(order[run_start[run_length == 1]])]
     following: dict[int, list[int]] = {}
     for a, b in border.tolist():
         following.setdefault(a, []).append(b)

@@ -317,8 +317,8 @@ class AtlasReconstructor(BaseEstimator):
         samples, normals = np.concatenate(samples), np.concatenate(normals)
         kept_open = np.concatenate(kept_open)
         spacing = self.decomposition_.spacing_
-        uncharted = ((lambda: uncharted_points(self.points_, samples, spacing)) if self.closed_
-                     else None)
+        uncharted = ((lambda tree: uncharted_points(self.points_, samples, spacing, tree))
+                     if self.closed_ else None)
         self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim,
                                    closed=self.closed_, seal=self.seal_, uncharted=uncharted,
                                    grid=self._join_grid(voxel),

@@ -226,12 +226,12 @@ class ClosedSDF:
     def fit(self, samples, normals, kept_open=None, uncharted=None) -> ClosedSDF:
         """samples, normals : (m, 3); kept_open : (m,) bool samples whose front the opening may
         not fill (`reconstruct.join.implicit_mesh`); uncharted : (p, 3) data points no chart
-        represents, or a callable giving them. Returns self."""
+        represents, or a callable of the samples' cKDTree giving them. Returns self."""
         self._take(samples, normals, kept_open)
         seal, voxel = self._seal, self.voxel
         self.origin_, self.shape_ = grid_box(self.samples_, voxel, seal + 3)
         shape = tuple(int(n) for n in self.shape_)
-        extra = uncharted() if callable(uncharted) else uncharted
+        extra = uncharted(self.tree_) if callable(uncharted) else uncharted
         self._occupied = occupancy(self.samples_, extra, self.origin_, self.shape_, voxel)
         self._free = ndimage.distance_transform_edt(~self._occupied) > seal
         self._pockets = free_pockets(self._free)
@@ -273,7 +273,7 @@ class ClosedSDF:
             self.n_changed_ = changed
             return self
         moved = np.concatenate([self.samples_[added], old[removed]])
-        extra = uncharted() if callable(uncharted) else uncharted
+        extra = uncharted(self.tree_) if callable(uncharted) else uncharted
         occupied = occupancy(self.samples_, extra, self.origin_, self.shape_, self.voxel)
         cells = np.flatnonzero(occupied != self._occupied)
         self._occupied = occupied

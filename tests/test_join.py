@@ -9,6 +9,7 @@ from reconstruct.join import (
     exterior_votes,
     implicit_mesh,
     split_nonmanifold,
+    stretched_samples,
     thin_shell,
     topology,
 )
@@ -161,3 +162,27 @@ def test_topology_reads_as_trimesh_does():
         assert topology(mesh.faces) == (mesh.is_watertight, mesh.is_winding_consistent,
                                          mesh.euler_number)
     assert topology(np.zeros((0, 3), int)) == (False, False, 0)
+
+
+def test_a_stretched_chart_is_filled_on_its_faces():
+    from scipy.spatial import Delaunay, cKDTree
+
+    u, v = np.mgrid[0:8, 0:8].reshape(2, -1).astype(float)
+    faces = Delaunay(np.c_[u, v]).simplices
+    x = u + 3 * np.clip(u - 3, 0, 2)  # the map stretches 3 < u < 5 four times
+    mesh = trimesh.Trimesh(np.c_[x, v, np.sin(u)], faces, process=False)
+    kept = np.flatnonzero(u < 6)  # the chart's own part
+    normals = np.tile([0.0, 0.0, 1.0], (len(kept), 1))
+    ((extra, extra_normals),) = stretched_samples([mesh], [kept], [normals], 2.0)
+    assert len(extra) > 0
+    assert (extra[:, 0] > 3 - 1e-9).all() and (extra[:, 0] < 11 + 1e-9).all()  # stretched, kept
+    assert trimesh.proximity.closest_point(mesh, extra)[1].max() < 1e-9  # on the chart's faces
+    np.testing.assert_allclose(extra_normals, np.tile([0.0, 0.0, 1.0], (len(extra), 1)))
+    probe = trimesh.sample.sample_surface(mesh, 4000, seed=0)[0]
+    probe = probe[(probe[:, 0] > 3) & (probe[:, 0] < 11)]
+    gap = cKDTree(np.concatenate([mesh.vertices[kept], extra])).query(probe)[0].max()
+    assert gap < 1.3 < cKDTree(mesh.vertices[kept]).query(probe)[0].max()
+    level = trimesh.Trimesh(np.c_[u, v, 0 * u], faces, process=False)
+    both = stretched_samples([level, mesh], [kept, kept], [normals, normals], 2.0)
+    assert len(both[0][0]) == 0  # sides of 1 and diagonals of 1.4: nothing to fill
+    np.testing.assert_array_equal(both[1][0], extra)  # each chart by its own median

@@ -48,7 +48,7 @@ from .sdf_grid import SparseSDF
 #: atlas saved by an earlier revision does not give its kept mesh back for the same samples (a
 #: mug saved before the pocket votes changed kept its cut handle); its first re-mesh joins
 #: afresh. Raise it when a change to the join changes its meshes.
-JOIN_REVISION = 3
+JOIN_REVISION = 4
 #: Threads of the KD-tree queries of `chart_samples` (a re-mesh's; the machine has 2 cores).
 QUERY_THREADS = 2
 
@@ -334,13 +334,16 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         mesh.update_faces(~far)
         mesh.remove_unreferenced_vertices()
     runs = _edge_runs(np.asarray(mesh.faces))
-    pieces = mesh.split(only_watertight=False) if n_pieces(mesh.faces, runs) > 1 else [mesh]
-    if len(pieces) > 1:
-        largest = max(pieces, key=lambda p: len(p.faces))
-        kept = [p for p in pieces if len(p.faces) >= min_share * len(largest.faces)]
+    piece = piece_labels(mesh.faces, runs)
+    if piece.max() > 0:
+        sizes = np.bincount(piece)
+        largest = int(np.argmax(sizes))
+        kept = sizes >= min_share * sizes[largest]
         if closed:  # a closed piece facing the other way: a void, which no scan sees
-            kept = [p for p in kept if not _void(p, largest)]
-        mesh, runs = trimesh.util.concatenate(kept), None
+            kept &= ~_voids(mesh, piece, runs, largest)
+        mesh.update_faces(kept[piece])
+        mesh.remove_unreferenced_vertices()
+        runs = None
     if closed:
         parted = split_nonmanifold(mesh, runs)
         mesh, runs = parted, (runs if parted is mesh else None)
@@ -354,14 +357,20 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     return mesh
 
 
-def _void(piece: trimesh.Trimesh, largest: trimesh.Trimesh) -> bool:
-    """Whether ``piece`` of a closed join is a void: closed, and turned the other way from
+def _voids(mesh: trimesh.Trimesh, piece: np.ndarray, runs, largest: int) -> np.ndarray:
+    """(p,) bool: which pieces of a closed join's ``mesh`` (``piece`` (f,) label of each face;
+    ``runs`` its `_edge_runs`) are voids: closed, and turned the other way from the
     ``largest`` (marching cubes orients every piece by the grid's sign, so such a piece bounds
-    outside values enclosed by inside ones, within some solid piece). Two layers of
-    samples under the surface, a thin part's shell meeting the charts beside it, close one
-    (figurine 20k: a 600-face bubble 2 mm under an ear, Euler 4 instead of 2)."""
-    return (piece is not largest and piece.is_watertight and largest.is_watertight
-            and signed_volume(piece) * signed_volume(largest) < 0)
+    outside values enclosed by inside ones, within some solid piece). Two layers of samples
+    under the surface, a thin part's shell meeting the charts beside it, close one (figurine
+    20k: a 600-face bubble 2 mm under an ear, Euler 4 instead of 2)."""
+    _, order, run_start, run_length = runs
+    open_edges = np.repeat(run_length != 2, run_length)  # the half-edges, in edge order
+    n = int(piece.max()) + 1
+    closed = np.bincount(piece[order[open_edges] // 3], minlength=n) == 0
+    a, b, c = (np.asarray(mesh.vertices)[np.asarray(mesh.faces)[:, k]] for k in range(3))
+    volume = np.bincount(piece, np.einsum("ij,ij->i", a, np.cross(b, c)), minlength=n)
+    return closed & closed[largest] & (volume * volume[largest] < 0)
 
 
 def signed_volume(mesh: trimesh.Trimesh) -> float:
@@ -432,17 +441,17 @@ def topology(faces: np.ndarray, runs=None) -> tuple[bool, bool, int]:
     return bool(np.all(run_length == 2)), winding, referenced - len(run_start) + len(faces)
 
 
-def n_pieces(faces: np.ndarray, runs=None) -> int:
-    """Number of pieces of ``faces`` (f, 3) joined across edges of exactly two faces (as
-    trimesh's ``split`` counts them), found from one integer key per edge (fast). ``runs``:
-    `_edge_runs` of the faces if the caller has them."""
+def piece_labels(faces: np.ndarray, runs=None) -> np.ndarray:
+    """(f,) the piece of each of ``faces`` (f, 3), pieces joined across edges of exactly two
+    faces (as trimesh's ``split`` finds them), from one integer key per edge (fast).
+    ``runs``: `_edge_runs` of the faces if the caller has them."""
     if len(faces) == 0:
-        return 0
+        return np.zeros(0, np.int64)
     _, order, run_start, run_length = _edge_runs(faces) if runs is None else runs
     pairs = run_start[run_length == 2]
     first, second = order[pairs] // 3, order[pairs + 1] // 3
     adjacency = coo_matrix((np.ones(len(first)), (first, second)), shape=(len(faces),) * 2)
-    return int(connected_components(adjacency, directed=False)[0])
+    return connected_components(adjacency, directed=False)[1]
 
 
 def border_loops(faces: np.ndarray) -> list[np.ndarray]:
@@ -483,8 +492,10 @@ def _simple_cycles(loop: list[int]) -> list[list[int]]:
 
 
 def close_small_holes(mesh: trimesh.Trimesh, max_length: float) -> trimesh.Trimesh:
-    """Cap every border loop of ``mesh`` shorter than ``max_length`` with a fan about its
-    centroid, wound like the faces beside it. Longer loops (borders, holes in the data) stay."""
+    """Cap every border loop of ``mesh`` shorter than ``max_length``, wound like the faces
+    beside it: a loop of 3 or 4 edges with 1 or 2 triangles (as trimesh's ``fill_holes``),
+    a longer one with a fan about its centroid. Longer loops (borders, holes in the data)
+    stay."""
     loops = border_loops(mesh.faces)
     vertices, faces = [mesh.vertices], [mesh.faces]
     count = len(mesh.vertices)
@@ -492,10 +503,15 @@ def close_small_holes(mesh: trimesh.Trimesh, max_length: float) -> trimesh.Trime
         ring = mesh.vertices[loop]
         if np.linalg.norm(np.diff(ring, axis=0, append=ring[:1]), axis=1).sum() > max_length:
             continue
-        vertices.append(ring.mean(axis=0, keepdims=True))
         # a border edge a → b lies in one face; the cap runs it b → a
-        faces.append(np.column_stack([np.roll(loop, -1), loop, np.full(len(loop), count)]))
-        count += 1
-    if count == len(mesh.vertices):
+        if len(loop) == 3:
+            faces.append(loop[None, ::-1])
+        elif len(loop) == 4:
+            faces.append(np.array([[loop[3], loop[2], loop[1]], [loop[3], loop[1], loop[0]]]))
+        else:
+            vertices.append(ring.mean(axis=0, keepdims=True))
+            faces.append(np.column_stack([np.roll(loop, -1), loop, np.full(len(loop), count)]))
+            count += 1
+    if len(faces) == 1:
         return mesh
     return trimesh.Trimesh(np.concatenate(vertices), np.concatenate(faces), process=True)

@@ -193,6 +193,13 @@ def test_small_holes_are_capped_and_large_ones_kept():
     open_cap.update_faces(top < 0.5)
     open_cap.remove_unreferenced_vertices()
     assert not close_small_holes(open_cap, max_length=2.0).is_watertight  # 5.4 long
+    pair = sphere.face_adjacency[(sphere.face_adjacency == 7).any(axis=1)][0]
+    for lost in ([7], pair):
+        holed = sphere.copy()  # a hole of 3 edges, then of 4: capped without a new vertex
+        holed.update_faces(~np.isin(np.arange(len(sphere.faces)), lost))
+        capped = close_small_holes(holed, max_length=2.0)
+        assert len(capped.vertices) == len(sphere.vertices) and len(capped.faces) == 1280
+        assert capped.is_watertight and capped.is_winding_consistent and capped.volume > 0
 
 
 def test_a_closed_cloud_whose_join_is_not_watertight_is_warned_about(sphere_atlas, monkeypatch):

@@ -5,7 +5,7 @@ import pytest
 from scipy.sparse.csgraph import connected_components
 
 from reconstruct.errors import InvalidInputError
-from reconstruct.sheet_graph import SheetGraph, otsu_layers
+from reconstruct.sheet_graph import TROUGH_LIMIT, SheetGraph, otsu_layers, trough
 
 
 def two_sheets(n, gap, sigma, seed=0):
@@ -46,6 +46,22 @@ def test_otsu_finds_two_layers_and_not_one():
     one = rng.normal(size=(2000, 64))
     two = one + 5 * rng.integers(0, 2, (2000, 64))
     assert np.median(otsu_layers(one)[1]) < 3.0 < 4.5 < np.median(otsu_layers(two)[1])
+
+
+def test_a_trough_tells_two_layers_from_one_thick_one():
+    # A uniform layer (a slab's rim between its faces) has the Otsu ratio of two layers 4 σ
+    # apart (3.5 against 4.2: `LAYER_RATIO` 3.4 lies between); only two layers leave a trough.
+    rng = np.random.default_rng(0)
+    one = rng.normal(size=(2000, 256))
+    uniform = rng.uniform(-2, 2, (2000, 256))
+    two = rng.normal(size=(2000, 256)) + 4 * rng.integers(0, 2, (2000, 256))
+
+    def median_trough(offsets):
+        threshold, _, upper, width = otsu_layers(offsets)
+        return np.median(trough(offsets, threshold, upper, width))
+
+    assert np.median(otsu_layers(uniform)[1]) > 3.4
+    assert median_trough(two) < 0.5 < TROUGH_LIMIT < median_trough(uniform) < median_trough(one)
 
 
 def test_sheets_two_percent_apart_at_half_percent_noise_stay_apart():
@@ -115,3 +131,28 @@ def test_plates_farther_apart_than_a_neighbourhood_is_wide_stay_apart():
     assert wide.layered_[plate != 0].mean() > 0.8 and crossing(wide) < 0.005
     sizes = np.bincount(wide.labels_)
     assert sizes.max() > 0.7 * len(points)  # the plates stay joined through their foot
+
+
+def test_the_plates_stay_apart_where_128_neighbours_see_one_layer():
+    # Seed 1 of the bench's plates: in patches of 100-170 points the Otsu ratio of 128
+    # neighbours, averaged, fell below `LAYER_RATIO` (median 3.41 over the plates), and the
+    # plates' faces were joined there, so one chart spanned both plates and its mesh ran
+    # between them (gap's mid-plane open 68 %). 256 neighbours see the two layers everywhere.
+    import trimesh
+
+    from sim.awkward_objects import sample_cloud, sheets
+
+    mesh = sheets()
+    rng = np.random.default_rng(1)  # `sample_cloud`'s draws, with the points' faces
+    clean, _ = trimesh.sample.sample_surface(mesh, 20000, seed=rng.integers(2**31))
+    points = clean + rng.normal(0, 0.005 * np.linalg.norm(mesh.extents), clean.shape)
+    assert np.allclose(points, sample_cloud(mesh, 20000, 0.005, random_state=1))
+    inner = (clean[:, 2] > 15) & (clean[:, 2] < 100) & (np.abs(clean[:, 1]) < 45)
+    plate = (clean[inner, 0] > 0).astype(int)
+    graph = SheetGraph().fit(points)
+    assert graph.layered_[inner].mean() > 0.99
+    # the plates' faces, without their rims and foot: each of the two largest pieces is one
+    # plate (points the noise moved onto the other plate join it; measured 0.9996, 128
+    # neighbours only: 0.51, one piece holding both plates)
+    purity, covered = sheet_purity(graph.graph_[inner][:, inner], plate)
+    assert purity > 0.99 and covered > 0.6

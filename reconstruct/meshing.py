@@ -233,7 +233,9 @@ def _stitched(band_faces, border_edges, n_boundary, n_vertices):
 
 
 def _drop_unused(vertices, faces):
-    used = np.unique(faces)
+    used = np.zeros(len(vertices), bool)
+    used[faces.ravel()] = True
+    used = np.flatnonzero(used)  # np.unique(faces), without its sort
     remap = np.full(len(vertices), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     return vertices[used], remap[faces]

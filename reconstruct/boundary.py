@@ -37,6 +37,7 @@ This is a star-shaped view from the centroid: a C-shaped region is closed across
 from __future__ import annotations
 
 import logging
+from typing import NamedTuple
 
 import numpy as np
 from scipy.sparse import csr_matrix
@@ -99,24 +100,20 @@ class MultiDepthBoundary(BaseEstimator):
         self.band_factor = band_factor
         self.max_inset = max_inset
 
-    def fit(self, uv) -> MultiDepthBoundary:
-        """uv : (m, 2) float embedding, any scale. Returns self."""
+    def fit(self, uv, geometry: BoundaryGeometry | None = None) -> MultiDepthBoundary:
+        """uv : (m, 2) float embedding, any scale; geometry : its `boundary_geometry` with
+        this sampler's ``n_neighbors`` and ``density_factor``, if the caller keeps it (it
+        does not depend on the depth). Returns self."""
         self._check_params()
         uv = _check_uv(uv, self.n_corners)
         k = int(self.n_neighbors)
-        outliers = np.zeros(len(uv), dtype=bool)
-        if self.density_factor is not None:
-            kth = cKDTree(uv).query(uv, k=min(k + 1, len(uv)))[0][:, -1]
-            typical = np.median(kth)
-            if typical > 0:  # else more than half the points are duplicates: keep all
-                outliers = kth > self.density_factor * typical
-        geometry = _Polar(uv, ~outliers)
+        if geometry is None:
+            geometry = boundary_geometry(uv, k, self.density_factor)
+        outliers, geometry, below = geometry.outliers, geometry.polar, geometry.below
         spacing = geometry.spacing
         candidates = ~outliers
         if self.band_factor is not None:
-            width = self.band_factor * (self.depth + 1) * spacing
-            every = np.arange(len(uv))
-            candidates &= geometry.depth_below(every, candidates) <= width
+            candidates &= below <= self.band_factor * (self.depth + 1) * spacing
 
         remaining = candidates.copy()
         paths, corner_ids = [], []
@@ -238,6 +235,31 @@ def _check_uv(uv, min_points: int) -> np.ndarray:
     if len(uv) < min_points:
         raise InvalidInputError(f"{len(uv)} embedded points; the boundary needs {min_points}")
     return uv
+
+
+class BoundaryGeometry(NamedTuple):
+    """What `MultiDepthBoundary` measures of a cloud before its paths, at any depth:
+    ``outliers`` (m,) bool, ``polar`` its `_Polar` view of the inliers, ``below`` (m,) each
+    point's depth below the inliers' envelope polygon."""
+
+    outliers: np.ndarray
+    polar: _Polar
+    below: np.ndarray
+
+
+def boundary_geometry(uv: np.ndarray, n_neighbors: int = 8,
+                      density_factor: float | None = 4.0) -> BoundaryGeometry:
+    """`BoundaryGeometry` of the embedding ``uv`` (m, 2) (`MultiDepthBoundary`'s parameters):
+    a re-mesh at a new depth keeps it rather than query every point's neighbours again."""
+    uv = np.asarray(uv, float)
+    outliers = np.zeros(len(uv), dtype=bool)
+    if density_factor is not None:
+        kth = cKDTree(uv).query(uv, k=min(int(n_neighbors) + 1, len(uv)))[0][:, -1]
+        typical = np.median(kth)
+        if typical > 0:  # else more than half the points are duplicates: keep all
+            outliers = kth > density_factor * typical
+    polar = _Polar(uv, ~outliers)
+    return BoundaryGeometry(outliers, polar, polar.depth_below(np.arange(len(uv)), ~outliers))
 
 
 class _Polar:

@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 from sklearn.base import BaseEstimator, clone
 
 from .alignment import align_to
-from .boundary import MultiDepthBoundary, PCABoundary
+from .boundary import MultiDepthBoundary, PCABoundary, boundary_geometry
 from .embedding import SurfaceEmbedding
 from .errors import InvalidInputError, NotFittedError, ReconstructionWarning, WarmStartRefused
 from .faithfulness import (
@@ -422,9 +422,13 @@ class SurfaceReconstructor(BaseEstimator):
         if key not in cache:
             if self.boundary == "pca":
                 sampler = PCABoundary()
+                cache[key] = sampler.fit(self.embedding_).points_
             else:
                 sampler = MultiDepthBoundary(depth=self.depth, n_corners=self.n_corners)
-            cache[key] = sampler.fit(self.embedding_).points_
+                if "geometry" not in cache:  # the same at every depth
+                    cache["geometry"] = boundary_geometry(self.embedding_, sampler.n_neighbors,
+                                                          sampler.density_factor)
+                cache[key] = sampler.fit(self.embedding_, cache["geometry"]).points_
         return cache[key]
 
     def _check_mesh_params(self) -> None:
@@ -482,7 +486,8 @@ class SurfaceReconstructor(BaseEstimator):
         arrays = {f"{prefix}embedding": self.embedding_, f"{prefix}points": self.points_,
                   f"{prefix}onnx": np.frombuffer(self.surface_map_.to_bytes(), dtype=np.uint8)}
         for key, points in getattr(self, "_boundary_cache", {}).items():
-            if key != "tree":  # the boundary samples of each (boundary, depth, n_corners) used
+            if isinstance(key, tuple):  # the boundary samples of each (boundary, depth,
+                # n_corners) used; not the KD-tree or the geometry (rebuilt when needed)
                 arrays[f"{prefix}boundary_{key[0]}_{key[1]}_{key[2]}"] = points
         return meta, arrays
 

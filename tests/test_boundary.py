@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import shapely
 
-from reconstruct.boundary import MultiDepthBoundary, PCABoundary
+from reconstruct.boundary import MultiDepthBoundary, PCABoundary, boundary_geometry
 from reconstruct.errors import DegenerateCloudError, InvalidInputError
 
 
@@ -217,3 +217,14 @@ def test_a_deeper_point_far_inside_the_first_loop_is_no_interpolant():
     assert set(range(40)) <= set(order)
     with pytest.raises(InvalidInputError, match="max_inset"):
         MultiDepthBoundary(max_inset=0).fit(uv)
+
+
+def test_the_geometry_kept_between_depths_gives_the_same_paths():
+    uv = np.vstack([noisy_disc(3000, seed=3), [[9.0, 9.0]]])  # with a far outlier
+    geometry = boundary_geometry(uv)
+    assert geometry.outliers[-1] and geometry.outliers.sum() >= 1
+    for depth in (1, 2, 3):
+        fresh = MultiDepthBoundary(depth=depth).fit(uv)
+        kept = MultiDepthBoundary(depth=depth).fit(uv, geometry)
+        np.testing.assert_array_equal(kept.indices_, fresh.indices_)
+        np.testing.assert_array_equal(kept.outliers_, fresh.outliers_)

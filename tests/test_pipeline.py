@@ -87,9 +87,9 @@ def test_remesh_is_consistent_and_cached(plane_model, monkeypatch):
     sampled = []
     fit = MultiDepthBoundary.fit
 
-    def counted(self, uv):
+    def counted(self, uv, geometry=None):
         sampled.append(self.depth)
-        return fit(self, uv)
+        return fit(self, uv, geometry)
 
     monkeypatch.setattr(MultiDepthBoundary, "fit", counted)
     again = plane_model.remesh(lam=2, depth=3)

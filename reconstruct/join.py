@@ -77,6 +77,18 @@ def owned(positions, labels, tree: cKDTree, reach: float = np.inf) -> list[np.nd
     return np.split(inside, np.cumsum(sizes)[:-1])
 
 
+def _stacked(meshes, kept):
+    """The charts' ``meshes`` as one: vertex offsets (c + 1,), vertices (v, 3), faces (f, 3),
+    and which vertices are ``kept`` (c arrays of indices into each mesh) as a mask (v,)."""
+    offsets = np.cumsum([0, *(len(mesh.vertices) for mesh in meshes)])
+    vertices = np.concatenate([mesh.vertices for mesh in meshes])
+    faces = np.concatenate([np.asarray(mesh.faces) + offset
+                            for mesh, offset in zip(meshes, offsets, strict=False)])
+    mask = np.zeros(len(vertices), bool)
+    mask[np.concatenate([k + offset for k, offset in zip(kept, offsets, strict=False)])] = True
+    return offsets, vertices, faces, mask
+
+
 def vertex_normals(meshes, kept) -> list[np.ndarray]:
     """The unit normals (k_i, 3) of the vertices ``kept`` (k_i,) of each of ``meshes``: trimesh's
     angle-weighted vertex normals, computed once for the faces round all the kept vertices
@@ -84,12 +96,7 @@ def vertex_normals(meshes, kept) -> list[np.ndarray]:
     from trimesh.geometry import weighted_vertex_normals
     from trimesh.triangles import angles, normals
 
-    offsets = np.cumsum([0, *(len(mesh.vertices) for mesh in meshes)])
-    vertices = np.concatenate([mesh.vertices for mesh in meshes])
-    faces = np.concatenate([np.asarray(mesh.faces) + offset
-                            for mesh, offset in zip(meshes, offsets, strict=False)])
-    wanted = np.zeros(len(vertices), bool)
-    wanted[np.concatenate([k + offset for k, offset in zip(kept, offsets, strict=False)])] = True
+    offsets, vertices, faces, wanted = _stacked(meshes, kept)
     faces = faces[wanted[faces].any(axis=1)]
     triangles = vertices[faces]
     unit, valid = normals(triangles)
@@ -113,13 +120,8 @@ def stretched_samples(meshes, kept, normals, stretch: float) -> list:
     its network between the vertices strays from the surface where it stretches, figurine
     20k: 1.3 voxels off against 0.1 at the vertices), with normals interpolated from the
     corners'. Returns c pairs of samples (q_i, 3) and unit normals (q_i, 3)."""
-    offsets = np.cumsum([0, *(len(mesh.vertices) for mesh in meshes)])
-    vertices = np.concatenate([mesh.vertices for mesh in meshes])
-    faces = np.concatenate([np.asarray(mesh.faces) + offset
-                            for mesh, offset in zip(meshes, offsets, strict=False)])
+    offsets, vertices, faces, is_kept = _stacked(meshes, kept)
     chart = np.repeat(np.arange(len(meshes)), [len(mesh.faces) for mesh in meshes])
-    is_kept = np.zeros(len(vertices), bool)
-    is_kept[np.concatenate([k + offset for k, offset in zip(kept, offsets, strict=False)])] = True
     full = is_kept[faces].all(axis=1)
     faces, chart = faces[full], chart[full]
     a, b, c = (vertices[faces[:, k]] for k in range(3))
@@ -348,7 +350,7 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         parted = split_nonmanifold(mesh, runs)
         mesh, runs = parted, (runs if parted is mesh else None)
     else:
-        capped = close_small_holes(mesh, max_length=hole * voxel)
+        capped = close_small_holes(mesh, max_length=hole * voxel, runs=runs)
         mesh, runs = capped, (runs if capped is mesh else None)
     if topology(np.asarray(mesh.faces), runs)[0] and signed_volume(mesh) < 0:  # watertight
         mesh.invert()
@@ -368,16 +370,20 @@ def _voids(mesh: trimesh.Trimesh, piece: np.ndarray, runs, largest: int) -> np.n
     open_edges = np.repeat(run_length != 2, run_length)  # the half-edges, in edge order
     n = int(piece.max()) + 1
     closed = np.bincount(piece[order[open_edges] // 3], minlength=n) == 0
-    a, b, c = (np.asarray(mesh.vertices)[np.asarray(mesh.faces)[:, k]] for k in range(3))
-    volume = np.bincount(piece, np.einsum("ij,ij->i", a, np.cross(b, c)), minlength=n)
+    volume = np.bincount(piece, _face_volumes(mesh), minlength=n)
     return closed & closed[largest] & (volume * volume[largest] < 0)
 
 
 def signed_volume(mesh: trimesh.Trimesh) -> float:
     """The volume a closed ``mesh`` encloses, negative when its faces turn inwards (trimesh's
     ``volume`` computes every mass property for it: 40 ms of a 45k-vertex re-mesh)."""
+    return float(_face_volumes(mesh).sum()) / 6.0
+
+
+def _face_volumes(mesh: trimesh.Trimesh) -> np.ndarray:
+    """(f,) six times the signed volume of the tetrahedron of each face and the origin."""
     a, b, c = (np.asarray(mesh.vertices)[np.asarray(mesh.faces)[:, k]] for k in range(3))
-    return float(np.einsum("ij,ij->", a, np.cross(b, c))) / 6.0
+    return np.einsum("ij,ij->i", a, np.cross(b, c))
 
 
 def split_nonmanifold(mesh: trimesh.Trimesh, runs=None) -> trimesh.Trimesh:
@@ -454,10 +460,11 @@ def piece_labels(faces: np.ndarray, runs=None) -> np.ndarray:
     return connected_components(adjacency, directed=False)[1]
 
 
-def border_loops(faces: np.ndarray) -> list[np.ndarray]:
+def border_loops(faces: np.ndarray, runs=None) -> list[np.ndarray]:
     """Closed loops (vertex indices, in the faces' direction) of the edges of ``faces`` (f, 3)
-    that belong to one face only. A vertex where two loops touch is walked through once each."""
-    directed, order, run_start, run_length = _edge_runs(faces)
+    that belong to one face only. A vertex where two loops touch is walked through once each.
+    ``runs``: `_edge_runs` of the faces if the caller has them."""
+    directed, order, run_start, run_length = _edge_runs(faces) if runs is None else runs
     border = directed[np.sort(order[run_start[run_length == 1]])]
     following: dict[int, list[int]] = {}
     for a, b in border.tolist():
@@ -491,12 +498,12 @@ def _simple_cycles(loop: list[int]) -> list[list[int]]:
     return cycles
 
 
-def close_small_holes(mesh: trimesh.Trimesh, max_length: float) -> trimesh.Trimesh:
+def close_small_holes(mesh: trimesh.Trimesh, max_length: float, runs=None) -> trimesh.Trimesh:
     """Cap every border loop of ``mesh`` shorter than ``max_length``, wound like the faces
     beside it: a loop of 3 or 4 edges with 1 or 2 triangles (as trimesh's ``fill_holes``),
     a longer one with a fan about its centroid. Longer loops (borders, holes in the data)
-    stay."""
-    loops = border_loops(mesh.faces)
+    stay. ``runs``: the mesh's `_edge_runs` if the caller has them."""
+    loops = border_loops(mesh.faces, runs)
     vertices, faces = [mesh.vertices], [mesh.faces]
     count = len(mesh.vertices)
     for loop in loops:

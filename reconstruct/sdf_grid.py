@@ -28,6 +28,9 @@ from scipy.spatial import cKDTree
 IMLS_NEIGHBOURS = 8
 #: Gaussian width of the IMLS weights, in voxels.
 IMLS_WIDTH = 1.5
+#: Threads of the join's KD-tree queries (the machine has 2 cores; a join runs after its
+#: charts, on its own).
+QUERY_THREADS = 2
 
 
 def lattice_box(samples: np.ndarray, voxel: float, pad: float) -> tuple[np.ndarray, np.ndarray]:
@@ -43,7 +46,7 @@ def imls(nodes, samples, normals, tree: cKDTree, voxel: float, return_index: boo
     (m, 3) in ``tree``. Returns values (q,) and the distances (q, k) to the k nearest samples
     (k = 8, or fewer samples), nearest first (and their indices (q, k), ``return_index``)."""
     k = min(IMLS_NEIGHBOURS, len(samples))
-    d, index = tree.query(nodes, k=k)
+    d, index = tree.query(nodes, k=k, workers=QUERY_THREADS)
     d, index = d.reshape(len(nodes), k), index.reshape(len(nodes), k)
     offsets = np.einsum("gki,gki->gk", nodes[:, None, :] - samples[index], normals[index])
     weights = np.exp(-(d / (IMLS_WIDTH * voxel)) ** 2)
@@ -110,9 +113,9 @@ class SparseSDF:
         self.values_ = np.full(tuple(self.shape_), self._far)
         self.mask_ = np.zeros(tuple(self.shape_), bool)
         self._eighth = np.zeros(tuple(self.shape_), float)
-        nodes = self._candidates(samples, self.band + 1)
-        self._evaluate(nodes)
+        nodes = self._candidates(samples, self.band + 1)  # a box round each sample
         self.n_evaluated_ = len(nodes)
+        self._evaluate(self._near(self.tree_, nodes, self._far))
         self.n_changed_ = len(samples)
         self.reach_ = float(self._eighth.max())
         self._fitted_with = (self.voxel, self.band, self.pad, self.tolerance)
@@ -149,14 +152,17 @@ class SparseSDF:
         changed = np.concatenate([samples[added], self._old[removed]])
         self.tree_ = cKDTree(samples)
         # a node's 8 nearest samples can change only within its old 8-neighbour distance of a
-        # change; after the change it is at most max(reach, band + 1 voxels) from one
-        radius = max(self.reach_, self._far)
-        nodes = self._candidates(changed, radius / self.voxel)
-        # of those, the nodes a change is nearer than their old 8th neighbour (or the band)
-        xyz = self.origin_ + self.voxel * np.column_stack(
-            np.unravel_index(nodes, tuple(self.shape_))).astype(float)
-        gap = cKDTree(changed).query(xyz, distance_upper_bound=radius * (1 + 1e-9))[0]
-        nodes = nodes[gap <= np.maximum(self._eighth.flat[nodes], self._far)]
+        # change, its band membership within band + 1 voxels: the nodes a change is that near.
+        # Most nodes' 8th neighbour is nearer than band + 1 voxels; the few farther ones are
+        # sought apart, within the largest such distance (reach): a scan's open join, 3,271
+        # changed samples: 326k candidate nodes queried -> 136k + 30k
+        tree = cKDTree(changed)
+        nodes = self._near(tree, self._candidates(changed, self._far / self.voxel), self._far)
+        if self.reach_ > self._far:
+            wide = self._candidates(changed, self.reach_ / self.voxel)
+            wide = wide[self._eighth.flat[wide] > self._far]
+            wide = self._near(tree, wide, self.reach_, self._eighth.flat[wide])
+            nodes = np.union1d(nodes, wide) if len(wide) else nodes
         self.values_.flat[nodes] = self._far
         self.mask_.flat[nodes] = False
         self._eighth.flat[nodes] = 0
@@ -185,20 +191,28 @@ class SparseSDF:
         marked = maximum_filter(marked, size=2 * reach + 2, mode="constant")
         return np.flatnonzero(marked)
 
-    def _evaluate(self, flat: np.ndarray) -> None:
+    def _xyz(self, flat: np.ndarray) -> np.ndarray:
+        """(q, 3) positions of the nodes at ``flat`` indices (q,)."""
         index = np.unravel_index(flat, tuple(self.shape_))
-        nodes = self.origin_ + self.voxel * np.column_stack(index).astype(float)
-        distance = self.tree_.query(nodes, distance_upper_bound=self._far)[0]
-        near = np.isfinite(distance)
-        if not near.any():
-            return
-        values, distances = imls(nodes[near], self.samples_, self.normals_, self.tree_,
+        return self.origin_ + self.voxel * np.column_stack(index).astype(float)
+
+    def _near(self, tree: cKDTree, flat: np.ndarray, bound: float, within=None) -> np.ndarray:
+        """The nodes of ``flat`` within ``bound`` of a point of ``tree``, or within their own
+        ``within`` (q,) ≤ ``bound``."""
+        gap = tree.query(self._xyz(flat), distance_upper_bound=bound * (1 + 1e-9),
+                         workers=QUERY_THREADS)[0]
+        return flat[gap <= (bound if within is None else within)]
+
+    def _evaluate(self, flat: np.ndarray) -> None:
+        # the nodes within band + 1 voxels of a sample: nearly all of those asked (a separate
+        # nearest-sample query to pick them cost a third of the evaluation)
+        values, distances = imls(self._xyz(flat), self.samples_, self.normals_, self.tree_,
                                  self.voxel)
-        eighth = distances[:, -1]
+        near = distances[:, 0] <= self._far
         where = flat[near]
-        self.values_.flat[where] = values
-        self._eighth.flat[where] = eighth
-        self.mask_.flat[where] = distance[near] <= self.band * self.voxel
+        self.values_.flat[where] = values[near]
+        self._eighth.flat[where] = distances[near, -1]
+        self.mask_.flat[where] = distances[near, 0] <= self.band * self.voxel
 
     # -- persistence ---------------------------------------------------------------------------
     def state(self, prefix: str = "") -> tuple[dict, dict[str, np.ndarray]]:

@@ -202,6 +202,35 @@ def test_small_holes_are_capped_and_large_ones_kept():
         assert capped.is_watertight and capped.is_winding_consistent and capped.volume > 0
 
 
+def test_many_small_holes_are_capped_at_once_even_where_two_touch():
+    sphere = trimesh.creation.icosphere(3)
+    faces, centre = np.asarray(sphere.faces), sphere.triangles_center
+
+    def face_towards(direction):
+        return int(np.argmax(centre @ np.asarray(direction, float)))
+
+    def touching(face):  # the faces sharing exactly one vertex with ``face``
+        shared = np.isin(faces, faces[face]).sum(axis=1)
+        return np.flatnonzero(shared == 1)
+
+    triangle = face_towards([1, 0, 0])
+    quad = [face_towards([-1, 0, 0]), *sphere.face_adjacency[
+        (sphere.face_adjacency == face_towards([-1, 0, 0])).any(axis=1)][0]]
+    top = int(np.argmax(sphere.vertices[:, 2]))
+    fan = np.flatnonzero((faces == top).any(axis=1))  # 5 or 6 faces round a vertex
+    bow = face_towards([0, 1, 0])
+    bow_tie = [bow, touching(bow)[0]]  # two triangular holes meeting at one vertex
+    lost = np.unique(np.r_[triangle, quad, fan, bow_tie])
+    holed = sphere.copy()
+    holed.update_faces(~np.isin(np.arange(len(faces)), lost))
+    holed.remove_unreferenced_vertices()
+    assert len(trimesh.grouping.group_rows(holed.edges_sorted, require_count=1)) > 15
+    capped = close_small_holes(holed, max_length=2.0)
+    assert len(capped.vertices) == len(holed.vertices) + 1  # the fan's centre only
+    assert capped.is_watertight and capped.is_winding_consistent
+    assert capped.euler_number == 2 and capped.volume > 0
+
+
 def test_a_closed_cloud_whose_join_is_not_watertight_is_warned_about(sphere_atlas, monkeypatch):
     _, atlas = sphere_atlas
     assert atlas.closed_ and (np.abs(atlas.votes_) >= 0.5).all()

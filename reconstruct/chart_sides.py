@@ -22,6 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .join import exterior_votes
+from .sdf_grid import QUERY_THREADS
 
 #: A chart faces out of the object when its exterior vote (`join.exterior_votes`) is this clear.
 VOTE_LIMIT = 0.5
@@ -63,7 +64,8 @@ def uncharted_points(points, samples, spacing: float, tree: cKDTree | None = Non
     where the sheet graph cut its points off), not single noisy points. ``tree``: a cKDTree of
     ``samples`` if the caller has one. Returns (p, 3)."""
     tree = cKDTree(samples) if tree is None else tree
-    far = points[tree.query(points)[0] > UNCHARTED * spacing]
+    reach = UNCHARTED * spacing
+    far = points[tree.query(points, distance_upper_bound=reach, workers=QUERY_THREADS)[0] > reach]
     if len(far) < 4:
         return far[:0]
     crowd = cKDTree(far).query_ball_point(far, 2 * spacing, return_length=True)

@@ -417,8 +417,9 @@ def _edge_keys(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The half-edges (3f, 2) of ``faces`` (f, 3), in the faces' direction, and one int64 key
     (3f,) per undirected edge (equal keys: the same edge; sorted keys: lexicographic order)."""
     directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    ordered = np.sort(directed, axis=1).astype(np.int64)
-    return directed, ordered[:, 0] * (int(ordered.max(initial=0)) + 1) + ordered[:, 1]
+    low = np.minimum(directed[:, 0], directed[:, 1]).astype(np.int64)
+    high = np.maximum(directed[:, 0], directed[:, 1]).astype(np.int64)
+    return directed, low * (int(high.max(initial=0)) + 1) + high
 
 
 def _edge_runs(faces: np.ndarray) -> tuple:
@@ -426,7 +427,7 @@ def _edge_runs(faces: np.ndarray) -> tuple:
     (3f, 2) in the faces' direction, their indices (3f,) in the order of their undirected edges,
     and where each edge's run of half-edges starts in that order (e,) and how long it is (e,)."""
     directed, key = _edge_keys(faces)
-    order = np.argsort(key, kind="stable")
+    order = np.argsort(key)  # which of an edge's half-edges comes first matters to no caller
     ordered = key[order]
     run_start = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]]) if len(key) else order
     return directed, order, run_start, np.diff(np.r_[run_start, len(key)])

@@ -103,11 +103,10 @@ def _grid_nodes(polygon, spacing, lattice=False):
     ring = _densify(polygon, spacing / 4)
     cells = np.floor((ring - lo) / spacing).astype(np.int64)
     candidate = np.zeros_like(inside)
-    for dj in (-1, 0, 1, 2):
-        for di in (-1, 0, 1, 2):
-            j = np.clip(cells[:, 1] + dj, 0, ny)
-            i = np.clip(cells[:, 0] + di, 0, nx)
-            candidate[j, i] = True
+    step = np.arange(-1, 3)
+    j = np.clip(cells[:, 1, None, None] + step[None, :, None], 0, ny)  # (r, 4, 1)
+    i = np.clip(cells[:, 0, None, None] + step[None, None, :], 0, nx)  # (r, 1, 4)
+    candidate[j, i] = True
     candidate &= inside
     near = np.zeros_like(inside)
     if candidate.any():

@@ -74,9 +74,8 @@ def border_spacing(polygon: np.ndarray, tree: cKDTree, k: int = 16, n_stations: 
     inside = rasterize(polygon, origin, step, (rows, columns))
     probes = stations[:, None, :] + radius[:, None, None] * _PATTERN  # (s, pattern, 2)
     node = np.rint((probes - origin) / step).astype(np.int64)
-    within = (node >= 0).all(axis=2) & (node[..., 0] < columns) & (node[..., 1] < rows)
-    held = np.zeros(node.shape[:2], bool)
-    held[within] = inside[node[within][:, 1], node[within][:, 0]]
+    framed = np.pad(inside, 1)  # a probe off the raster reads its frame: outside
+    held = framed[np.clip(node[..., 1], -1, rows) + 1, np.clip(node[..., 0], -1, columns) + 1]
     area = held.mean(axis=1) * np.pi * radius**2
     spacing = np.sqrt(area[area > 0] / k)
     if len(spacing) == 0:

@@ -38,7 +38,7 @@ from .io import one_line, read_state, write_state
 from .meshing import default_spacing, mesh_inside, sample_ring
 from .mlp import AdaptiveMLP
 from .outline import border_inset, border_spacing, extend_outline
-from .spline import BoundarySpline
+from .spline import BoundarySpline, SplineInput, spline_input
 from .surface_map import OnnxSurfaceMap
 from .validation import check_points
 
@@ -367,8 +367,8 @@ class SurfaceReconstructor(BaseEstimator):
             vars(self).update(previous)  # a rejected value leaves the model as it was
             raise
         started = time.perf_counter()
-        interpolants = self._boundary_points()
-        spline = BoundarySpline(lam=self.lam, variance=self.variance).fit(interpolants)
+        interpolants, spline_input = self._boundary_points()
+        spline = BoundarySpline(lam=self.lam, variance=self.variance).fit(spline_input)
         outline = self._extended(spline.polygon_)
         bounded = time.perf_counter()
         spacing = self.grid_spacing or default_spacing(outline, len(self.embedding_))
@@ -416,7 +416,9 @@ class SurfaceReconstructor(BaseEstimator):
             cache["tree"] = cKDTree(self.embedding_)
         return extend_outline(polygon, factor * border_spacing(polygon, cache["tree"]))
 
-    def _boundary_points(self) -> np.ndarray:
+    def _boundary_points(self) -> tuple[np.ndarray, SplineInput]:
+        """The boundary interpolants (k, 2) of the present boundary parameters, and their
+        `spline_input` (both kept for the next re-mesh)."""
         cache = self.__dict__.setdefault("_boundary_cache", {})
         key = (self.boundary, self.depth, self.n_corners)
         if key not in cache:
@@ -429,7 +431,10 @@ class SurfaceReconstructor(BaseEstimator):
                     cache["geometry"] = boundary_geometry(self.embedding_, sampler.n_neighbors,
                                                           sampler.density_factor)
                 cache[key] = sampler.fit(self.embedding_, cache["geometry"]).points_
-        return cache[key]
+        inputs = cache.setdefault("spline", {})  # of the interpolants kept, not of replaced ones
+        if key not in inputs or inputs[key][0] is not cache[key]:
+            inputs[key] = cache[key], spline_input(cache[key])
+        return inputs[key]
 
     def _check_mesh_params(self) -> None:
         if not (np.isfinite(self.lam) and self.lam >= 0):

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 import shapely
@@ -68,7 +69,8 @@ class BoundarySpline(BaseEstimator):
         self.variance = variance
 
     def fit(self, points) -> BoundarySpline:
-        """points : (m, 2) float interpolants in loop order (first point not repeated)."""
+        """points : (m, 2) float interpolants in loop order (first point not repeated), or
+        their `spline_input` (a caller fitting them with several λ keeps it)."""
         if not (np.isfinite(self.lam) and self.lam >= 0):
             raise InvalidInputError(f"lam must be a finite number >= 0, got {self.lam}")
         if int(self.degree) != self.degree or not 1 <= self.degree <= 5:
@@ -77,12 +79,11 @@ class BoundarySpline(BaseEstimator):
             raise InvalidInputError(f"n_samples must be a whole number >= 8, got {self.n_samples}")
         if self.variance not in ("global", "local"):
             raise InvalidInputError(f"variance must be 'global' or 'local', got {self.variance!r}")
-        loop = _check_interpolants(points)
+        given = points if isinstance(points, SplineInput) else spline_input(points)
+        loop, u, spread = given.loop, given.u, given.spread
         m = len(loop)
-        spread = float(np.sum((loop - loop.mean(axis=0)) ** 2) / m)
-        variance = spread if self.variance == "global" else _normal_scatter(loop)
+        variance = spread if self.variance == "global" else given.scatter
         smoothing = self.lam * m * variance
-        u = np.append(_chord_parameter(loop), 1.0)
         # A fresh closed copy: splprep(per=1) ignores (and may overwrite) the last point.
         closed = np.vstack([loop, loop[:1]]).T.copy()
         try:
@@ -151,6 +152,26 @@ class BoundarySpline(BaseEstimator):
     def _check_fitted(self) -> None:
         if not hasattr(self, "tck_"):
             raise NotFittedError("fit() the boundary spline first")
+
+
+class SplineInput(NamedTuple):
+    """What a spline fit takes from its interpolants whatever λ: the checked ``loop`` (m, 2),
+    its chord parameters ``u`` (m + 1,), and its variance by the global rule (``spread``) and
+    by the local one (``scatter``)."""
+
+    loop: np.ndarray
+    u: np.ndarray
+    spread: float
+    scatter: float
+
+
+def spline_input(points) -> SplineInput:
+    """The `SplineInput` of interpolants ``points`` (m, 2) in loop order: re-meshing with a new
+    λ fits the same interpolants again (0.6 ms of a chart's 8 ms re-mesh)."""
+    loop = _check_interpolants(points)
+    spread = float(np.sum((loop - loop.mean(axis=0)) ** 2) / len(loop))
+    return SplineInput(loop, np.append(_chord_parameter(loop), 1.0), spread,
+                       _normal_scatter(loop))
 
 
 def _evaluate(tck, n: int) -> np.ndarray:

@@ -404,11 +404,11 @@ def split_nonmanifold(mesh: trimesh.Trimesh, runs=None) -> trimesh.Trimesh:
     flipped = np.r_[same, same]
     cols[flipped] = np.concatenate([corner_a[second], corner_b[second]])[flipped]
     graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * n_faces,) * 2)
-    _, fan = connected_components(graph, directed=False)
+    n_fans, fan = connected_components(graph, directed=False)
+    if n_fans == len(mesh.vertices):  # one fan a vertex: nothing to split
+        return mesh
     old_vertex = faces.ravel()
     _, first_corner = np.unique(fan, return_index=True)
-    if len(first_corner) == len(mesh.vertices):
-        return mesh
     return trimesh.Trimesh(np.asarray(mesh.vertices)[old_vertex[first_corner]],
                            fan.reshape(-1, 3), process=False)
 

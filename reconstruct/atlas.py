@@ -49,6 +49,7 @@ from .errors import FitError, InvalidInputError, NotFittedError, ReconstructionW
 from .io import one_line, read_state, write_state
 from .join import (
     chart_samples,
+    face_viewer,
     implicit_mesh,
     orient_charts,
     owned,
@@ -101,6 +102,10 @@ class AtlasReconstructor(BaseEstimator):
     closed : None: join the charts as the boundary of a volume when their exterior votes say
         the cloud is closed, else as an open surface; False: always open (a scan with unseen
         parts, where a closed join caps guesses: `capture.live.atlas_fit`); True: always closed.
+    up : (3,) the direction an open surface is seen from above: its mesh is turned to face
+        from above and around, as a station or a scanner over a table sees it
+        (`join.face_viewer`; None: as its charts' normals give it); a closed one faces out of
+        its volume.
     hidden_layers, n_neighbors : the charts' layer widths and K, e.g. of a one-chart fit of the
         same cloud (`SurfaceReconstructor`); None: the first chart's search and choice.
     graph : an unfitted `SheetGraph` (its parameters); None: the defaults.
@@ -131,7 +136,7 @@ class AtlasReconstructor(BaseEstimator):
     def __init__(self, chart_size: int = 2500, overlap: float = 4.0, lam: float = 1.0,
                  depth: int = 2, reuse_layers: bool = True, max_splits: int = 2,
                  voxel: float = 0.5, band: float = 3.0, trim: float = 1.0, reach: float = 1.0,
-                 shell: float = 1.0, closed: bool | None = None,
+                 shell: float = 1.0, closed: bool | None = None, up=(0.0, 0.0, 1.0),
                  hidden_layers: tuple[int, ...] | None = None, n_neighbors: int | None = None,
                  graph: SheetGraph | None = None, max_points: int = 20000,
                  n_jobs: int | None = -1,
@@ -148,6 +153,7 @@ class AtlasReconstructor(BaseEstimator):
         self.reach = reach
         self.shell = shell
         self.closed = closed
+        self.up = up
         self.hidden_layers = hidden_layers
         self.n_neighbors = n_neighbors
         self.graph = graph
@@ -332,6 +338,8 @@ class AtlasReconstructor(BaseEstimator):
                                    closed=self.closed_, seal=self.seal_, uncharted=uncharted,
                                    grid=self._join_grid(voxel),
                                    kept_open=kept_open if kept_open.any() else None)
+        if not self.closed_ and self.up is not None:
+            face_viewer(self.mesh_, self.points_, self.up)
         self.samples_, self.normals_ = samples, normals
         if decide or not (self._sdf.hit_ and hasattr(self, "euler_")):  # else the same mesh
             self.watertight_, self.winding_consistent_, self.euler_ = topology(self.mesh_.faces)
@@ -448,6 +456,8 @@ class AtlasReconstructor(BaseEstimator):
         self = cls(**meta["params"])
         self.charts_ = [SurfaceReconstructor.from_state(chart, arrays, prefix=f"chart{i}_")
                         for i, chart in enumerate(meta["charts"])]
+        for chart in self.charts_:  # a chart keeps the side its map gives (signs_ turn it),
+            chart.up = None  # also when saved before charts had the parameter
         self.points_ = np.asarray(arrays["points"], float)
         labels = np.asarray(arrays["labels"], np.int64)
         offsets = np.asarray(arrays["chart_offsets"], np.int64)

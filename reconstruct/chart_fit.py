@@ -53,7 +53,7 @@ def fit_chart(points, lam: float, depth: int, random_state, n_neighbors: int | N
     from .mlp import AdaptiveMLP
     from .pipeline import SurfaceReconstructor
 
-    params = dict(lam=lam, depth=depth, random_state=random_state, atlas="never",
+    params = dict(lam=lam, depth=depth, random_state=random_state, atlas="never", up=None,
                   embedding="landmark" if len(points) > LANDMARK_CHARTS else "auto",
                   n_neighbors=n_neighbors)
     if hidden_layers is not None:

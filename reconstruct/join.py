@@ -352,7 +352,7 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         capped = close_small_holes(mesh, max_length=hole * voxel, runs=runs)
         mesh, runs = capped, (runs if capped is mesh else None)
     if topology(np.asarray(mesh.faces), runs)[0] and signed_volume(mesh) < 0:  # watertight
-        mesh.invert()
+        turn_faces(mesh)
     if sdf is grid and data is None:
         sdf.mesh_, sdf.mesh_key_ = mesh.copy(include_cache=True), key
     return mesh
@@ -371,6 +371,33 @@ def _voids(mesh: trimesh.Trimesh, piece: np.ndarray, runs, largest: int) -> np.n
     closed = np.bincount(piece[order[open_edges] // 3], minlength=n) == 0
     volume = np.bincount(piece, _face_volumes(mesh), minlength=n)
     return closed & closed[largest] & (volume * volume[largest] < 0)
+
+
+def face_viewer(mesh: trimesh.Trimesh, points: np.ndarray, up=(0.0, 0.0, 1.0)) -> trimesh.Trimesh:
+    """Turn an open ``mesh`` (in place) to face the side its cloud ``points`` (n, 3) was seen
+    from, as a scan station or a scanner over a table sees a surface: from above and around.
+    Its faces vote, by area, for facing away from a point the cloud's diagonal below its
+    centroid along ``up`` (3,): a relief faces up, the walls of a scanned object out (the
+    part of a surface that faces up exceeds the part that faces down by what no one saw
+    from below). Marching cubes orients an open join's faces by its charts' normals, whose
+    sign an open cloud leaves free (a relief's faced down at 4 of 6 seeds). Returns the
+    mesh."""
+    up = np.asarray(up, float) / np.linalg.norm(up)
+    diagonal = float(np.linalg.norm(np.ptp(points, axis=0))) if len(points) else 0.0
+    below = points.mean(axis=0) - max(diagonal, 1e-12) * up
+    away = mesh.triangles_center - below
+    away /= np.maximum(np.linalg.norm(away, axis=1), 1e-300)[:, None]
+    if np.einsum("ij,ij->i", mesh.face_normals, away) @ mesh.area_faces < 0:
+        turn_faces(mesh)
+    return mesh
+
+
+def turn_faces(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """Reverse the winding of every face of ``mesh`` (in place). trimesh's ``invert`` keeps
+    face normals cached before it un-negated (trimesh 5.2: it sets the negated normals while
+    the faces are still the old ones, its setter refuses them, and the old stay cached)."""
+    mesh.faces = np.ascontiguousarray(np.asarray(mesh.faces)[:, ::-1])
+    return mesh
 
 
 def signed_volume(mesh: trimesh.Trimesh) -> float:

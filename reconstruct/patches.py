@@ -45,6 +45,7 @@ from sklearn.base import BaseEstimator, clone
 from reconstruct.errors import InvalidInputError
 
 from .faithfulness import FOLD_LIMIT, UNEXPLAINED_LIMIT, fold_share, unexplained_fraction
+from .join import turn_faces
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +53,7 @@ log = logging.getLogger(__name__)
 def _default_reconstructor(random_state):
     from reconstruct.pipeline import SurfaceReconstructor
 
-    return SurfaceReconstructor(random_state=random_state, atlas="never")  # a patch is a chart
+    return SurfaceReconstructor(random_state=random_state, atlas="never", up=None)  # a chart
 
 
 def _outward(points: np.ndarray, reference_z: float | None) -> np.ndarray:
@@ -68,7 +69,7 @@ def _orient_outwards(mesh: trimesh.Trimesh, reference_z: float | None) -> trimes
         @ mesh.area_faces
     )
     if flux < 0:
-        mesh.invert()
+        turn_faces(mesh)  # not trimesh's invert: it keeps the face normals just read
     return mesh
 
 

@@ -35,6 +35,7 @@ from .faithfulness import (
     unexplained_fraction,
 )
 from .io import one_line, read_state, write_state
+from .join import face_viewer
 from .meshing import default_spacing, mesh_inside, sample_ring
 from .mlp import AdaptiveMLP
 from .outline import border_inset, border_spacing, extend_outline
@@ -109,6 +110,10 @@ class SurfaceReconstructor(BaseEstimator):
         (e.g. ``{"final_epochs": 300, "patience": 12}``; None: as the earlier fit had them).
     warm_tolerance : distance (input units) within which a point counts as one a warm start's
         earlier fit saw; None: the earlier points' median nearest-neighbour spacing.
+    up : (3,) the direction the surface is seen from above: an open mesh is turned to face
+        from above and around, as a scan station or a scanner over a table sees it
+        (`join.face_viewer`; a network's map leaves the side free); None: as the map gives it
+        (an atlas's charts and a scan's sectors, whose owners orient them).
 
     Fitted attributes: ``embedding_`` (m, 2), ``points_`` (m, 3) the points it was fitted to,
     ``mlp_`` (`AdaptiveMLP`; not after `load`), ``embedding_method_``, ``n_neighbors_``,
@@ -144,6 +149,7 @@ class SurfaceReconstructor(BaseEstimator):
         fine_tune: dict | None = None,
         warm_tolerance: float | None = None,
         atlas: str = "auto",
+        up=(0.0, 0.0, 1.0),
     ):
         self.lam = lam
         self.depth = depth
@@ -163,6 +169,7 @@ class SurfaceReconstructor(BaseEstimator):
         self.fine_tune = fine_tune
         self.warm_tolerance = warm_tolerance
         self.atlas = atlas
+        self.up = up
 
     def fit(self, points, warm_start: SurfaceReconstructor | None = None) -> SurfaceReconstructor:
         """points : (n, 3) float, any unit. Returns self with ``mesh_`` set.
@@ -284,7 +291,8 @@ class SurfaceReconstructor(BaseEstimator):
         """An unfitted `AtlasReconstructor` with this reconstruction's λ, depth and seed."""
         from .atlas import AtlasReconstructor
 
-        return AtlasReconstructor(lam=self.lam, depth=self.depth, random_state=self.random_state)
+        return AtlasReconstructor(lam=self.lam, depth=self.depth, up=self.up,
+                                  random_state=self.random_state)
 
     def _fit_atlas(self, points, reason: str, hidden_layers: tuple[int, ...] | None = None,
                    n_neighbors: int | None = None, atlas=None) -> SurfaceReconstructor:
@@ -381,6 +389,8 @@ class SurfaceReconstructor(BaseEstimator):
         self.outline_ = outline
         self.vertices_2d_ = vertices_2d
         self.mesh_ = trimesh.Trimesh(vertices_3d, faces, process=False)
+        if self.up is not None:
+            face_viewer(self.mesh_, self.points_, self.up)
         self.timings_ = {**getattr(self, "timings_", {}), "boundary": bounded - started,
                          "mesh": time.perf_counter() - bounded}
         log.info(

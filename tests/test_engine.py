@@ -188,6 +188,12 @@ def test_the_final_mesh_of_a_cup_is_an_atlas_with_both_walls(cup_engine):
     # a ray from the axis halfway up meets the inner wall, then the outer one
     hits = hits_per_ray(engine.mesh, *side_rays([30.0], np.arange(5, 360, 30.0)))
     assert np.median(hits) == 2, hits
+    # it faces the camera: its outer wall out, whatever sign its charts' normals took
+    centre, normal = engine.mesh.triangles_center, engine.mesh.face_normals
+    outer = (np.hypot(centre[:, 0], centre[:, 1]) > 37) & (centre[:, 2] > 10)
+    radial = np.einsum("ij,ij->i", normal[outer, :2], centre[outer, :2])
+    assert np.sum(engine.mesh.area_faces[outer] * (radial > 0)) > 0.9 * np.sum(
+        engine.mesh.area_faces[outer])
 
 
 def test_a_replayed_atlas_scan_gives_the_same_mesh(cup_engine):

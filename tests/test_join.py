@@ -7,11 +7,13 @@ import trimesh
 from reconstruct.closed_grid import _VOTERS, _voters
 from reconstruct.join import (
     exterior_votes,
+    face_viewer,
     implicit_mesh,
     split_nonmanifold,
     stretched_samples,
     thin_shell,
     topology,
+    turn_faces,
 )
 
 
@@ -186,3 +188,29 @@ def test_a_stretched_chart_is_filled_on_its_faces():
     both = stretched_samples([level, mesh], [kept, kept], [normals, normals], 2.0)
     assert len(both[0][0]) == 0  # sides of 1 and diagonals of 1.4: nothing to fill
     np.testing.assert_array_equal(both[1][0], extra)  # each chart by its own median
+
+
+def test_an_open_join_faces_the_side_it_was_seen_from():
+    x, y = np.meshgrid(np.linspace(-50, 50, 41), np.linspace(-50, 50, 41))
+    z = 6 * np.sin(x / 9) * np.cos(y / 13)  # a relief, seen from above
+    corner = (np.arange(40)[:, None] * 41 + np.arange(40)).ravel()
+    quads = np.c_[corner, corner + 1, corner + 42, corner + 41]
+    relief = trimesh.Trimesh(np.c_[x.ravel(), y.ravel(), z.ravel()],
+                             np.r_[quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]], process=False)
+    tube = trimesh.creation.revolve(np.array([(40.0, 60.0), (40.0, 0.0)]), sections=48)
+    for mesh, out in ((relief, lambda m: m.face_normals[:, 2]),  # up
+                      (tube, lambda m: np.einsum("ij,ij->i", m.face_normals[:, :2],
+                                                 m.triangles_center[:, :2]))):  # radially out
+        points = mesh.vertices
+        for turned in (mesh.copy(), turn_faces(mesh.copy())):  # either way round to begin
+            assert face_viewer(turned, points, up=(0, 0, 1)) is turned
+            assert (out(turned) > 0).all()
+            assert (out(trimesh.Trimesh(turned.vertices, turned.faces, process=False)) > 0).all()
+
+
+def test_turned_faces_have_turned_normals():
+    sphere = trimesh.creation.icosphere(1)
+    before = sphere.face_normals.copy()  # cached: trimesh's invert would keep these
+    turn_faces(sphere)
+    np.testing.assert_allclose(sphere.face_normals, -before, atol=1e-12)
+    assert sphere.volume < 0

@@ -49,6 +49,16 @@ def test_noisy_plane_gives_a_flat_mesh(plane_model):
     assert mesh.is_winding_consistent
 
 
+def test_an_open_mesh_faces_the_side_it_is_seen_from(plane_model):
+    assert (plane_model.mesh_.face_normals[:, 2] > 0).all()  # up, the default
+    try:
+        plane_model.set_params(up=(0, 0, -1))  # seen from below
+        assert (plane_model.remesh().face_normals[:, 2] < 0).all()
+    finally:
+        plane_model.set_params(up=(0, 0, 1))
+        plane_model.remesh()
+
+
 def test_sphere_cap_keeps_its_radius():
     model = SurfaceReconstructor(random_state=0).fit(noisy_sphere_cap())  # default search
     radii = np.linalg.norm(model.mesh_.vertices, axis=1)

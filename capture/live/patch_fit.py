@@ -40,6 +40,7 @@ def _reconstructor(params: ReconstructionParams, mlp: AdaptiveMLP | None = None,
         lam=params.lam, depth=params.depth, max_layers=params.max_layers,
         max_neurons=params.max_neurons, random_state=params.seed, mlp=mlp, fine_tune=fine_tune,
         warm_tolerance=warm_tolerance, atlas="never",  # a sector is the engine's own chart
+        up=None,  # oriented outwards with its patch (reconstruct.patches)
     )
 
 

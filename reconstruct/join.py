@@ -229,17 +229,29 @@ def exterior_grid(samples, voxel: float, band: float = 3.0, normals=None, pad=No
     return origin, shape, exterior_of(free, origin, voxel, samples, normals), free
 
 
-def exterior_votes(chart_samples_, chart_normals, voxel: float, band: float = 3.0):
+def exterior_votes(chart_samples_, chart_normals, voxel: float, band: float = 3.0,
+                   extra=None):
     """Which side of each chart is outside the object.
 
     chart_samples_, chart_normals : c arrays (m_i, 3). A probe ``band + 1.5`` voxels along
     each sample's normal and one against it are looked up in `exterior_grid` of all samples.
+    ``extra`` (p, 3): data no chart represents (`reconstruct.chart_sides.uncharted_points`);
+    free space that it encloses, occupying the grid as it does a closed join's, is not
+    outside: a hole in the samples where the sheet graph left a junction's data out is not a
+    hole in the surface (bench.atlas sheets 20k: through such holes by the plates' roots
+    the inside of the foot was outside, its charts two-sided and joined as shells whose
+    inner faces voted that inside outside again in the join; a hollow foot). Only what it
+    encloses: the nodes it alone keeps from free keep their side (the noisy data either side
+    of a curled ear charted once leaves the ear two-sided).
     Returns votes (c,) in [−1, 1], the charts' mean of +1 when only the front probe is
     outside (the normal points out), −1 when only the back one is, 0 otherwise; and
     two_sided (c,), the share of samples with both probes outside (a sheet seen from both
     sides: an open surface, or a part thinner than the noise charted once)."""
     everything = np.concatenate([s for s in chart_samples_ if len(s)])
     origin, shape, exterior, _ = exterior_grid(everything, voxel, band)
+    if extra is not None and len(extra):
+        _, _, plugged, free = exterior_grid(everything, voxel, band, extra=extra)
+        exterior &= ~(free & ~plugged)
     step = (band + 1.5) * voxel
 
     def outside(p):

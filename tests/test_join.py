@@ -59,6 +59,27 @@ def test_exterior_votes_find_the_outside_of_each_chart():
     assert abs(votes[0]) < 0.1 and two_sided[0] > 0.9
 
 
+def test_data_no_chart_represents_closes_a_hole_in_the_samples_for_the_votes():
+    # a sphere's samples with a cap left out (wider than twice the band) where the data lies:
+    # through the hole the inside looks outside and the chart two-sided, unless that data
+    # occupies the votes' grid (as it does a closed join's)
+    rng = np.random.default_rng(3)
+    direction = rng.normal(size=(20000, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    cap = direction[:, 2] > 0.85
+    charts, normals = [direction[~cap]], [direction[~cap]]
+    votes, two_sided = exterior_votes(charts, normals, 0.05)
+    assert two_sided[0] > 0.5
+    votes, two_sided = exterior_votes(charts, normals, 0.05, extra=direction[cap])
+    assert votes[0] > 0.9 and two_sided[0] < 0.05
+    # a sheet's noisy data on both sides of it encloses nothing: the sheet stays two-sided
+    sheet = np.c_[rng.uniform(-1, 1, (2000, 2)), np.zeros(2000)]
+    up = np.tile([0.0, 0.0, 1.0], (2000, 1))
+    noise = np.c_[rng.uniform(-1, 1, (4000, 2)), np.repeat([-0.1, 0.1], 2000)]
+    votes, two_sided = exterior_votes([sheet], [up], 0.05, extra=noise)
+    assert abs(votes[0]) < 0.1 and two_sided[0] > 0.9
+
+
 def test_a_sheet_joined_as_a_thin_shell_is_closed():
     rng = np.random.default_rng(2)
     direction = rng.normal(size=(4000, 3))

@@ -387,21 +387,29 @@ def _voids(mesh: trimesh.Trimesh, piece: np.ndarray, runs, largest: int) -> np.n
 
 def face_viewer(mesh: trimesh.Trimesh, points: np.ndarray, up=(0.0, 0.0, 1.0)) -> trimesh.Trimesh:
     """Turn an open ``mesh`` (in place) to face the side its cloud ``points`` (n, 3) was seen
-    from, as a scan station or a scanner over a table sees a surface: from above and around.
-    Its faces vote, by area, for facing away from a point the cloud's diagonal below its
-    centroid along ``up`` (3,): a relief faces up, the walls of a scanned object out (the
-    part of a surface that faces up exceeds the part that faces down by what no one saw
-    from below). Marching cubes orients an open join's faces by its charts' normals, whose
-    sign an open cloud leaves free (a relief's faced down at 4 of 6 seeds). Returns the
-    mesh."""
+    from (`faces_seen_side`). Marching cubes orients an open join's faces by its charts'
+    normals, whose sign an open cloud leaves free (a relief's faced down at 4 of 6 seeds).
+    Returns the mesh."""
+    if not faces_seen_side(mesh.vertices, mesh.faces, points, up):
+        turn_faces(mesh)
+    return mesh
+
+
+def faces_seen_side(vertices, faces, points, up=(0.0, 0.0, 1.0)) -> bool:
+    """Whether the faces (f, 3) over ``vertices`` (v, 3) face the side their cloud ``points``
+    (n, 3) was seen from, as a scan station or a scanner over a table sees a surface: from
+    above and around. The faces vote, by area, for facing away from a point the cloud's
+    diagonal below its centroid along ``up`` (3,): a relief faces up, the walls of a scanned
+    object out (the part of a surface that faces up exceeds the part that faces down by what
+    no one saw from below)."""
     up = np.asarray(up, float) / np.linalg.norm(up)
     diagonal = float(np.linalg.norm(np.ptp(points, axis=0))) if len(points) else 0.0
     below = points.mean(axis=0) - max(diagonal, 1e-12) * up
-    away = mesh.triangles_center - below
+    a, b, c = (np.asarray(vertices)[np.asarray(faces)[:, k]] for k in range(3))
+    doubled_area_normal = np.cross(b - a, c - a)
+    away = (a + b + c) / 3 - below
     away /= np.maximum(np.linalg.norm(away, axis=1), 1e-300)[:, None]
-    if np.einsum("ij,ij->i", mesh.face_normals, away) @ mesh.area_faces < 0:
-        turn_faces(mesh)
-    return mesh
+    return bool(np.einsum("ij,ij->", doubled_area_normal, away) >= 0)
 
 
 def turn_faces(mesh: trimesh.Trimesh) -> trimesh.Trimesh:

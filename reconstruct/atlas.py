@@ -49,13 +49,15 @@ from .errors import FitError, InvalidInputError, NotFittedError, ReconstructionW
 from .io import one_line, read_state, write_state
 from .join import (
     chart_samples,
-    face_viewer,
+    check_up,
+    faces_seen_side,
     implicit_mesh,
     orient_charts,
     owned,
     stretched_samples,
     thin_shell,
     topology,
+    turn_faces,
     vertex_normals,
 )
 from .sdf_grid import SparseSDF
@@ -104,7 +106,7 @@ class AtlasReconstructor(BaseEstimator):
         parts, where a closed join caps guesses: `capture.live.atlas_fit`); True: always closed.
     up : (3,) the direction an open surface is seen from above: its mesh is turned to face
         from above and around, as a station or a scanner over a table sees it
-        (`join.face_viewer`; None: as its charts' normals give it); a closed one faces out of
+        (`join.faces_seen_side`; None: as its charts' normals give it); a closed one faces out of
         its volume.
     hidden_layers, n_neighbors : the charts' layer widths and K, e.g. of a one-chart fit of the
         same cloud (`SurfaceReconstructor`); None: the first chart's search and choice.
@@ -136,10 +138,11 @@ class AtlasReconstructor(BaseEstimator):
     def __init__(self, chart_size: int = 2500, overlap: float = 4.0, lam: float = 1.0,
                  depth: int = 2, reuse_layers: bool = True, max_splits: int = 2,
                  voxel: float = 0.5, band: float = 3.0, trim: float = 1.0, reach: float = 1.0,
-                 shell: float = 1.0, closed: bool | None = None, up=(0.0, 0.0, 1.0),
+                 shell: float = 1.0, closed: bool | None = None,
                  hidden_layers: tuple[int, ...] | None = None, n_neighbors: int | None = None,
                  graph: SheetGraph | None = None, max_points: int = 20000,
                  n_jobs: int | None = -1,
+                 up: tuple[float, float, float] | None = (0.0, 0.0, 1.0),
                  random_state: int | None = 0):
         self.chart_size = chart_size
         self.overlap = overlap
@@ -208,6 +211,8 @@ class AtlasReconstructor(BaseEstimator):
         self.timings_ = {}
         try:
             points = check_points(points)
+            if self.up is not None:
+                check_up(self.up)
             if workers is None:
                 workers = chart_workers(self.n_jobs)
             points, fitted = self._fit_all(points, workers, started,
@@ -339,7 +344,7 @@ class AtlasReconstructor(BaseEstimator):
                                    grid=self._join_grid(voxel),
                                    kept_open=kept_open if kept_open.any() else None)
         if not self.closed_ and self.up is not None:
-            face_viewer(self.mesh_, self.points_, self.up)
+            self._face_seen_side(decide)
         self.samples_, self.normals_ = samples, normals
         if decide or not (self._sdf.hit_ and hasattr(self, "euler_")):  # else the same mesh
             self.watertight_, self.winding_consistent_, self.euler_ = topology(self.mesh_.faces)
@@ -347,6 +352,19 @@ class AtlasReconstructor(BaseEstimator):
             warnings.warn("the cloud looks closed (its charts face out of one volume) but the "
                           "joined mesh is not watertight", ReconstructionWarning, stacklevel=3)
         self.timings_["join"] = time.perf_counter() - started
+
+    def _face_seen_side(self, decide: bool) -> None:
+        """Turn the open ``mesh_`` to face the side the cloud was seen from
+        (`join.faces_seen_side`), found when the charts' sides are decided (or ``up``
+        changed) and kept: a re-mesh does not turn the mesh over between two λ."""
+        key = tuple(float(x) for x in check_up(self.up))
+        kept = self.__dict__.get("_seen_side")
+        if decide or kept is None or kept[0] != key:
+            kept = self._seen_side = (key, faces_seen_side(self.mesh_.vertices,
+                                                            self.mesh_.faces, self.points_,
+                                                            self.up))
+        if not kept[1]:
+            turn_faces(self.mesh_)
 
     def _fill_stretched(self, meshes, kept, unturned, chart_samples_, chart_normals, reach):
         """Add to each chart's samples and normals (lists, in place) those on its faces that

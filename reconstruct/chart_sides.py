@@ -69,17 +69,20 @@ def uncharted_points(points, samples, spacing: float, tree: cKDTree | None = Non
     ``samples`` if the caller has one. Returns (p, 3)."""
     tree = cKDTree(samples) if tree is None else tree
     reach = UNCHARTED * spacing
-    far = points[tree.query(points, distance_upper_bound=reach, workers=QUERY_THREADS)[0] > reach]
+    far = points[tree.query(points, distance_upper_bound=reach * (1 + 1e-9),
+                            workers=QUERY_THREADS)[0] > reach]
     if len(far) < 4:
         return far[:0]
     crowd = cKDTree(far).query_ball_point(far, 2 * spacing, return_length=True)
     return far[crowd >= 4]
 
 
-def behind_share(chart_samples, chart_normals, points, spacing: float, voxel: float):
-    """(c,) uncharted points (`uncharted_points` of ``points`` (n, 3)) lying `THIN_DEPTH`
-    voxels straight behind (`THIN_LATERAL`) their nearest sample of each chart (against its
-    outward normal), per sample of the chart. chart_samples, chart_normals : c arrays (m_i, 3)."""
+def behind_share(chart_samples, chart_normals, points, spacing: float, voxel: float,
+                 far=None):
+    """(c,) uncharted points (`uncharted_points` of ``points`` (n, 3); ``far`` (p, 3) if the
+    caller has them) lying `THIN_DEPTH` voxels straight behind (`THIN_LATERAL`) their nearest
+    sample of each chart (against its outward normal), per sample of the chart.
+    chart_samples, chart_normals : c arrays (m_i, 3)."""
     sizes = np.array([len(s) for s in chart_samples], float)
     filled = [i for i, s in enumerate(chart_samples) if len(s)]
     if not filled:
@@ -88,7 +91,7 @@ def behind_share(chart_samples, chart_normals, points, spacing: float, voxel: fl
     facing = np.concatenate([chart_normals[i] for i in filled])
     owner = np.concatenate([np.full(len(chart_samples[i]), i) for i in filled])
     tree = cKDTree(every)
-    far = uncharted_points(points, every, spacing, tree)
+    far = uncharted_points(points, every, spacing, tree) if far is None else far
     if len(far) == 0:
         return np.zeros(len(chart_samples))
     distance, nearest = tree.query(far)
@@ -146,8 +149,9 @@ class ChartSides:
         ``points``, each chart's points. Returns self."""
         sizes = np.array([len(s) for s in chart_samples], float)
         filled = [s for s in chart_samples if len(s)]
-        left_out = (uncharted_points(points, np.concatenate(filled), spacing) if filled
-                    else None)
+        # (a join told to stay open uses the votes for nothing but their report)
+        left_out = (uncharted_points(points, np.concatenate(filled), spacing)
+                    if filled and self.closed is not False else None)
         for seal in (self.band, 2 * self.band):
             votes, two_sided = exterior_votes(chart_samples, chart_normals, voxel, band=seal,
                                               extra=left_out)
@@ -170,7 +174,7 @@ class ChartSides:
             # face (two plates a few noise widths apart), joined as a shell whose far face
             # faces that data and keeps the gap in front of it open
             behind = behind_share(chart_samples, [t * n for t, n in zip(
-                self.turns_, chart_normals, strict=True)], points, spacing, voxel)
+                self.turns_, chart_normals, strict=True)], points, spacing, voxel, left_out)
             self.thin_ = thin_charts(outward, behind, sizes, chart_points)
             self.shells_ |= self.thin_
         return self

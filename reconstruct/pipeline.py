@@ -35,7 +35,7 @@ from .faithfulness import (
     unexplained_fraction,
 )
 from .io import one_line, read_state, write_state
-from .join import faces_seen_side
+from .join import check_up, faces_seen_side
 from .meshing import default_spacing, mesh_inside, sample_ring
 from .mlp import AdaptiveMLP
 from .outline import border_inset, border_spacing, extend_outline
@@ -112,8 +112,9 @@ class SurfaceReconstructor(BaseEstimator):
         earlier fit saw; None: the earlier points' median nearest-neighbour spacing.
     up : (3,) the direction the surface is seen from above: an open mesh is turned to face
         from above and around, as a scan station or a scanner over a table sees it
-        (`join.face_viewer`; a network's map leaves the side free); None: as the map gives it
-        (an atlas's charts and a scan's sectors, whose owners orient them).
+        (`join.faces_seen_side`, found once per map; a network's map leaves the side free);
+        None: as the map gives it (an atlas's charts and a scan's sectors, whose owners orient
+        them).
 
     Fitted attributes: ``embedding_`` (m, 2), ``points_`` (m, 3) the points it was fitted to,
     ``mlp_`` (`AdaptiveMLP`; not after `load`), ``embedding_method_``, ``n_neighbors_``,
@@ -149,7 +150,7 @@ class SurfaceReconstructor(BaseEstimator):
         fine_tune: dict | None = None,
         warm_tolerance: float | None = None,
         atlas: str = "auto",
-        up=(0.0, 0.0, 1.0),
+        up: tuple[float, float, float] | None = (0.0, 0.0, 1.0),
     ):
         self.lam = lam
         self.depth = depth
@@ -210,6 +211,7 @@ class SurfaceReconstructor(BaseEstimator):
         self.embedding_ = uv
         self.points_ = fitted
         self._boundary_cache = {}
+        self.__dict__.pop("_seen_side", None)  # of an earlier fit's map
         spare = None  # an atlas begun on a spare core, in case one chart cannot hold the cloud
         if warm_start is None and self.atlas == "auto" and len(fitted) >= SPECULATE_FROM:
             spare = self._new_atlas().start(fitted)
@@ -361,6 +363,7 @@ class SurfaceReconstructor(BaseEstimator):
             raise InvalidInputError(f"cannot re-mesh with {sorted(unknown)}: not a mesh parameter")
         if hasattr(self, "atlas_"):
             self._check_mesh_params_given(params)
+            self.atlas_.up = self.up  # set_params(up=...) reaches the atlas's open join
             self.mesh_ = self.atlas_.remesh(**params)
             self.set_params(**{k: v for k, v in params.items() if v is not None})
             return self.mesh_
@@ -375,8 +378,8 @@ class SurfaceReconstructor(BaseEstimator):
             vars(self).update(previous)  # a rejected value leaves the model as it was
             raise
         started = time.perf_counter()
-        interpolants, spline_input = self._boundary_points()
-        spline = BoundarySpline(lam=self.lam, variance=self.variance).fit(spline_input)
+        interpolants, fit_input = self._boundary_points()
+        spline = BoundarySpline(lam=self.lam, variance=self.variance).fit(fit_input)
         outline = self._extended(spline.polygon_)
         bounded = time.perf_counter()
         spacing = self.grid_spacing or default_spacing(outline, len(self.embedding_))
@@ -482,6 +485,8 @@ class SurfaceReconstructor(BaseEstimator):
             )
         if self.grid_spacing is not None and not self.grid_spacing > 0:
             raise InvalidInputError(f"grid_spacing must be > 0, got {self.grid_spacing}")
+        if self.up is not None:
+            check_up(self.up)
 
     # -- persistence ---------------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> Path:

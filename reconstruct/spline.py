@@ -170,8 +170,10 @@ def spline_input(points) -> SplineInput:
     λ fits the same interpolants again (0.6 ms of a chart's 8 ms re-mesh)."""
     loop = _check_interpolants(points)
     spread = float(np.sum((loop - loop.mean(axis=0)) ** 2) / len(loop))
-    return SplineInput(loop, np.append(_chord_parameter(loop), 1.0), spread,
-                       _normal_scatter(loop))
+    u = np.append(_chord_parameter(loop), 1.0)
+    for kept in (loop, u):  # shared by every fit of them (a fitted spline's ``u_`` is ``u``)
+        kept.setflags(write=False)
+    return SplineInput(loop, u, spread, _normal_scatter(loop))
 
 
 def _evaluate(tck, n: int) -> np.ndarray:

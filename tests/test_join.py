@@ -7,7 +7,7 @@ import trimesh
 from reconstruct.closed_grid import _VOTERS, _voters
 from reconstruct.join import (
     exterior_votes,
-    face_viewer,
+    faces_seen_side,
     implicit_mesh,
     split_nonmanifold,
     stretched_samples,
@@ -224,9 +224,11 @@ def test_an_open_join_faces_the_side_it_was_seen_from():
                                                  m.triangles_center[:, :2]))):  # radially out
         points = mesh.vertices
         for turned in (mesh.copy(), turn_faces(mesh.copy())):  # either way round to begin
-            assert face_viewer(turned, points, up=(0, 0, 1)) is turned
+            if not faces_seen_side(turned.vertices, turned.faces, points, up=(0, 0, 1)):
+                turn_faces(turned)
             assert (out(turned) > 0).all()
             assert (out(trimesh.Trimesh(turned.vertices, turned.faces, process=False)) > 0).all()
+    assert not faces_seen_side(relief.vertices, relief.faces, relief.vertices, up=(0, 0, -1))
 
 
 def test_turned_faces_have_turned_normals():

@@ -59,6 +59,12 @@ def test_an_open_mesh_faces_the_side_it_is_seen_from(plane_model):
         plane_model.remesh()
 
 
+@pytest.mark.parametrize("up", [(0, 0, 0), (0, 1), (np.nan, 0, 1), "up"])
+def test_a_wrong_up_is_refused_before_any_training(up):
+    with pytest.raises(InvalidInputError, match="up must be"):
+        SurfaceReconstructor(up=up).fit(noisy_plane(200))
+
+
 def test_sphere_cap_keeps_its_radius():
     model = SurfaceReconstructor(random_state=0).fit(noisy_sphere_cap())  # default search
     radii = np.linalg.norm(model.mesh_.vertices, axis=1)

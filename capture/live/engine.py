@@ -329,6 +329,7 @@ class IncrementalEngine:
         engine = cls(ReconstructionParams(**meta["params"]), background=False)
         for i, name in enumerate(meta["patches"]):
             model = SurfaceReconstructor.load(source / f"patch-{i}.npz")
+            model.up = None  # a sector is oriented with its patch (saved before it said so)
             engine.cache.fits[name] = PatchFit(model, "", 0)
         if meta.get("surface") == "atlas":
             engine.surface, engine.atlas = "atlas", AtlasReconstructor.load(

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .join import exterior_votes
+from .join import ExteriorProbe, exterior_votes
 from .sdf_grid import QUERY_THREADS
 
 #: A chart faces out of the object when its exterior vote (`join.exterior_votes`) is this clear.
@@ -131,7 +131,8 @@ class ChartSides:
     Parameters: ``band`` the join's band (voxels; ``2 band`` is tried as the seal too);
     ``closed`` None to decide, or True / False to impose.
 
-    Fitted: ``closed_`` bool, ``seal_`` the exterior grid's band, ``votes_`` (c,) in [−1, 1],
+    Fitted: ``closed_`` bool, ``seal_`` the exterior grid's band, ``probe_`` its
+    `join.ExteriorProbe`, ``votes_`` (c,) in [−1, 1],
     ``turns_`` (c,) ±1 turning each chart's normals to face out, ``shells_`` (c,) bool charts
     joined as a thin closed shell (two-sided, or thin), ``thin_`` (c,) bool thin parts whose
     shell's far face keeps the gap in front of it open.
@@ -149,19 +150,21 @@ class ChartSides:
         ``points``, each chart's points. Returns self."""
         sizes = np.array([len(s) for s in chart_samples], float)
         filled = [s for s in chart_samples if len(s)]
+        everything = np.concatenate(filled) if filled else np.zeros((0, 3))
         # (a join told to stay open uses the votes for nothing but their report)
-        left_out = (uncharted_points(points, np.concatenate(filled), spacing)
+        left_out = (uncharted_points(points, everything, spacing)
                     if filled and self.closed is not False else None)
         for seal in (self.band, 2 * self.band):
-            votes, two_sided = exterior_votes(chart_samples, chart_normals, voxel, band=seal,
-                                              extra=left_out)
+            probe = ExteriorProbe(everything, voxel, seal, left_out)
+            votes, two_sided = exterior_votes(chart_samples, chart_normals, voxel,
+                                              probe=probe)
             outward = np.abs(votes) >= VOTE_LIMIT
             closed = bool(sizes[outward].sum() >= CLOSED_SHARE * max(sizes.sum(), 1.0))
             if self.closed is not None:
                 closed = bool(self.closed)
             if closed or self.closed is not None:
                 break
-        self.closed_, self.votes_, self.seal_ = closed, votes, seal
+        self.closed_, self.votes_, self.seal_, self.probe_ = closed, votes, seal, probe
         self.turns_ = np.ones(len(chart_samples))
         self.shells_ = np.zeros(len(chart_samples), bool)
         self.thin_ = np.zeros(len(chart_samples), bool)

@@ -49,7 +49,7 @@ from .sdf_grid import QUERY_THREADS, SparseSDF
 #: atlas saved by an earlier revision does not give its kept mesh back for the same samples (a
 #: mug saved before the pocket votes changed kept its cut handle); its first re-mesh joins
 #: afresh. Raise it when a change to the join changes its meshes.
-JOIN_REVISION = 4
+JOIN_REVISION = 5
 
 
 def chart_samples(meshes, labels, points, reach: float = np.inf, tree: cKDTree | None = None):
@@ -230,12 +230,10 @@ def exterior_grid(samples, voxel: float, band: float = 3.0, normals=None, pad=No
     return origin, shape, exterior_of(free, origin, voxel, samples, normals), free
 
 
-def exterior_votes(chart_samples_, chart_normals, voxel: float, band: float = 3.0,
-                   extra=None):
-    """Which side of each chart is outside the object.
+class ExteriorProbe:
+    """Which side of oriented samples is outside the object: `exterior_grid` of ``samples``
+    (m, 3), looked up ``band + 1.5`` voxels along each normal and against it.
 
-    chart_samples_, chart_normals : c arrays (m_i, 3). A probe ``band + 1.5`` voxels along
-    each sample's normal and one against it are looked up in `exterior_grid` of all samples.
     ``extra`` (p, 3): data no chart represents (`reconstruct.chart_sides.uncharted_points`);
     free space that it encloses, occupying the grid as it does a closed join's, is not
     outside: a hole in the samples where the sheet graph left a junction's data out is not a
@@ -243,26 +241,51 @@ def exterior_votes(chart_samples_, chart_normals, voxel: float, band: float = 3.
     the inside of the foot was outside, its charts two-sided and joined as shells whose
     inner faces voted that inside outside again in the join; a hollow foot). Only what it
     encloses: the nodes it alone keeps from free keep their side (the noisy data either side
-    of a curled ear charted once leaves the ear two-sided).
+    of a curled ear charted once leaves the ear two-sided)."""
+
+    def __init__(self, samples, voxel: float, band: float = 3.0, extra=None):
+        self.origin, self.shape, self.exterior, _ = exterior_grid(samples, voxel, band)
+        if extra is not None and len(extra):
+            _, _, plugged, free = exterior_grid(samples, voxel, band, extra=extra)
+            self.exterior &= ~(free & ~plugged)
+        self.voxel, self.step = voxel, (band + 1.5) * voxel
+
+    def sides(self, samples, normals) -> tuple[np.ndarray, np.ndarray]:
+        """(m,) bool each: whether the probe in front of each of ``samples`` (m, 3) along its
+        ``normals`` (m, 3) is outside, and whether the one behind it is."""
+        def outside(p):
+            index = np.floor((p - self.origin) / self.voxel + 0.5).astype(int)
+            return self.exterior[tuple(np.clip(index, 0, self.shape - 1).T)]
+        return outside(samples + self.step * normals), outside(samples - self.step * normals)
+
+    def facing_in(self, samples, normals) -> np.ndarray:
+        """(m,) bool: the samples whose probes clearly put the outside behind them (the one in
+        front not outside, the one behind outside): in a closed cloud whose charts face out,
+        the flap of a chart folded over an edge (hook 20k seed 4: the foot's side chart ran
+        down inside the foot 2-3 mm from its corner and back out along its bottom with its
+        normals into the foot, and the planes in front of it opened an air channel to the
+        outside: Euler 0 against 2)."""
+        front, back = self.sides(samples, normals)
+        return back & ~front
+
+
+def exterior_votes(chart_samples_, chart_normals, voxel: float, band: float = 3.0,
+                   extra=None, probe: ExteriorProbe | None = None):
+    """Which side of each chart is outside the object.
+
+    chart_samples_, chart_normals : c arrays (m_i, 3), looked up in the `ExteriorProbe` of all
+    samples (with ``extra``; ``probe`` if the caller built it).
     Returns votes (c,) in [−1, 1], the charts' mean of +1 when only the front probe is
     outside (the normal points out), −1 when only the back one is, 0 otherwise; and
     two_sided (c,), the share of samples with both probes outside (a sheet seen from both
     sides: an open surface, or a part thinner than the noise charted once)."""
-    everything = np.concatenate([s for s in chart_samples_ if len(s)])
-    origin, shape, exterior, _ = exterior_grid(everything, voxel, band)
-    if extra is not None and len(extra):
-        _, _, plugged, free = exterior_grid(everything, voxel, band, extra=extra)
-        exterior &= ~(free & ~plugged)
-    step = (band + 1.5) * voxel
-
-    def outside(p):
-        index = np.clip(np.floor((p - origin) / voxel + 0.5).astype(int), 0, shape - 1)
-        return exterior[tuple(index.T)]
-
+    if probe is None:
+        everything = np.concatenate([s for s in chart_samples_ if len(s)])
+        probe = ExteriorProbe(everything, voxel, band, extra)
     votes, two_sided = np.zeros(len(chart_samples_)), np.zeros(len(chart_samples_))
     for index, (s, n) in enumerate(zip(chart_samples_, chart_normals, strict=True)):
         if len(s):
-            front, back = outside(s + step * n), outside(s - step * n)
+            front, back = probe.sides(s, n)
             votes[index] = np.mean(front.astype(float) - back)
             two_sided[index] = np.mean(front & back)
     return votes, two_sided

@@ -6,6 +6,7 @@ import trimesh
 
 from reconstruct.closed_grid import _VOTERS, _voters
 from reconstruct.join import (
+    ExteriorProbe,
     exterior_votes,
     faces_seen_side,
     implicit_mesh,
@@ -78,6 +79,18 @@ def test_data_no_chart_represents_closes_a_hole_in_the_samples_for_the_votes():
     noise = np.c_[rng.uniform(-1, 1, (4000, 2)), np.repeat([-0.1, 0.1], 2000)]
     votes, two_sided = exterior_votes([sheet], [up], 0.05, extra=noise)
     assert abs(votes[0]) < 0.1 and two_sided[0] > 0.9
+
+
+def test_the_probe_finds_a_flap_turned_into_the_object():
+    samples, normals = tube_samples()
+    outer = (samples[:, :2] ** 2).sum(axis=1) > 0.81
+    chart_normals = normals[outer].copy()
+    flap = samples[outer][:, 0] > 0.95  # a folded chart's flap: its normals into the wall
+    chart_normals[flap] *= -1
+    probe = ExteriorProbe(samples, 0.05, 3.0)
+    inward = probe.facing_in(samples[outer], chart_normals)
+    assert inward[flap].mean() > 0.9 and not inward[~flap].any()
+    assert not probe.facing_in(samples[~outer], normals[~outer]).any()
 
 
 def test_a_sheet_joined_as_a_thin_shell_is_closed():

@@ -330,7 +330,7 @@ class AtlasReconstructor(BaseEstimator):
             probe = self._exterior_probe(chart_samples_, voxel)
             chart_normals = [np.where(probe.facing_in(s, n)[:, None], -n, n)
                              for s, n in zip(chart_samples_, chart_normals, strict=True)]
-        if not self.closed_:  # an open join trims its mesh to its samples: no slits
+        else:  # an open join trims its mesh to its samples: no slits
             self._fill_stretched(meshes, kept, unturned, chart_samples_, chart_normals, reach)
         samples, normals, kept_open = [], [], []
         for s, n, shell, far_face in zip(chart_samples_, chart_normals, self.shells_,
@@ -349,8 +349,10 @@ class AtlasReconstructor(BaseEstimator):
                                    closed=self.closed_, seal=self.seal_, uncharted=uncharted,
                                    grid=self._join_grid(voxel),
                                    kept_open=kept_open if kept_open.any() else None)
+        if decide:
+            self.__dict__.pop("_seen_side", None)
         if not self.closed_ and self.up is not None:
-            self._face_seen_side(decide)
+            self._face_seen_side()
         self.samples_, self.normals_ = samples, normals
         if decide or not (self._sdf.hit_ and hasattr(self, "euler_")):  # else the same mesh
             self.watertight_, self.winding_consistent_, self.euler_ = topology(self.mesh_.faces)
@@ -369,13 +371,13 @@ class AtlasReconstructor(BaseEstimator):
                 self.points_, everything, self.decomposition_.spacing_))
         return self._probe
 
-    def _face_seen_side(self, decide: bool) -> None:
+    def _face_seen_side(self) -> None:
         """Turn the open ``mesh_`` to face the side the cloud was seen from
         (`join.faces_seen_side`), found when the charts' sides are decided (or ``up``
         changed) and kept: a re-mesh does not turn the mesh over between two λ."""
         key = tuple(float(x) for x in check_up(self.up))
         kept = self.__dict__.get("_seen_side")
-        if decide or kept is None or kept[0] != key:
+        if kept is None or kept[0] != key:
             kept = self._seen_side = (key, faces_seen_side(self.mesh_.vertices,
                                                             self.mesh_.faces, self.points_,
                                                             self.up))

@@ -78,10 +78,11 @@ def uncharted_points(points, samples, spacing: float, tree: cKDTree | None = Non
 
 
 def behind_share(chart_samples, chart_normals, points, spacing: float, voxel: float,
-                 far=None):
-    """(c,) uncharted points (`uncharted_points` of ``points`` (n, 3); ``far`` (p, 3) if the
-    caller has them) lying `THIN_DEPTH` voxels straight behind (`THIN_LATERAL`) their nearest
-    sample of each chart (against its outward normal), per sample of the chart.
+                 far=None, tree: cKDTree | None = None):
+    """(c,) uncharted points (`uncharted_points` of ``points`` (n, 3); ``far`` (p, 3) and a
+    ``tree`` of the charts' samples, in order, if the caller has them) lying `THIN_DEPTH`
+    voxels straight behind (`THIN_LATERAL`) their nearest sample of each chart (against its
+    outward normal), per sample of the chart.
     chart_samples, chart_normals : c arrays (m_i, 3)."""
     sizes = np.array([len(s) for s in chart_samples], float)
     filled = [i for i, s in enumerate(chart_samples) if len(s)]
@@ -90,7 +91,7 @@ def behind_share(chart_samples, chart_normals, points, spacing: float, voxel: fl
     every = np.concatenate([chart_samples[i] for i in filled])
     facing = np.concatenate([chart_normals[i] for i in filled])
     owner = np.concatenate([np.full(len(chart_samples[i]), i) for i in filled])
-    tree = cKDTree(every)
+    tree = cKDTree(every) if tree is None else tree
     far = uncharted_points(points, every, spacing, tree) if far is None else far
     if len(far) == 0:
         return np.zeros(len(chart_samples))
@@ -151,8 +152,9 @@ class ChartSides:
         sizes = np.array([len(s) for s in chart_samples], float)
         filled = [s for s in chart_samples if len(s)]
         everything = np.concatenate(filled) if filled else np.zeros((0, 3))
+        tree = cKDTree(everything) if filled else None
         # (a join told to stay open uses the votes for nothing but their report)
-        left_out = (uncharted_points(points, everything, spacing)
+        left_out = (uncharted_points(points, everything, spacing, tree)
                     if filled and self.closed is not False else None)
         for seal in (self.band, 2 * self.band):
             probe = ExteriorProbe(everything, voxel, seal, left_out)
@@ -177,7 +179,8 @@ class ChartSides:
             # face (two plates a few noise widths apart), joined as a shell whose far face
             # faces that data and keeps the gap in front of it open
             behind = behind_share(chart_samples, [t * n for t, n in zip(
-                self.turns_, chart_normals, strict=True)], points, spacing, voxel, left_out)
+                self.turns_, chart_normals, strict=True)], points, spacing, voxel, left_out,
+                tree)
             self.thin_ = thin_charts(outward, behind, sizes, chart_points)
             self.shells_ |= self.thin_
         return self

@@ -211,7 +211,7 @@ class SurfaceReconstructor(BaseEstimator):
         self.embedding_ = uv
         self.points_ = fitted
         self._boundary_cache = {}
-        self.__dict__.pop("_seen_side", None)  # of an earlier fit's map
+        self.__dict__.pop("_seen_side", None)  # of an earlier fit's embedding
         spare = None  # an atlas begun on a spare core, in case one chart cannot hold the cloud
         if warm_start is None and self.atlas == "auto" and len(fitted) >= SPECULATE_FROM:
             spare = self._new_atlas().start(fitted)
@@ -409,14 +409,15 @@ class SurfaceReconstructor(BaseEstimator):
 
     def _faces_seen_side(self, vertices, faces) -> bool:
         """Whether the map's faces (f, 3) over ``vertices`` (v, 3) face the side the cloud was
-        seen from (`join.faces_seen_side`): found on the first mesh of a map and ``up``, and
-        kept (a map's side does not change with λ or depth; 40 ms of a 50k-vertex re-mesh)."""
-        key = (self.surface_map_, tuple(float(x) for x in self.up))
+        seen from (`join.faces_seen_side`): found on a fit's first mesh for each ``up`` and
+        kept (the side follows the embedding, not λ or depth; 40 ms of a 50k-vertex re-mesh;
+        `fit` drops it)."""
+        key = tuple(float(x) for x in check_up(self.up))
         kept = self.__dict__.get("_seen_side")
-        if kept is None or kept[0] is not key[0] or kept[1] != key[1]:
-            kept = self._seen_side = (*key, faces_seen_side(vertices, faces, self.points_,
-                                                            self.up))
-        return kept[2]
+        if kept is None or kept[0] != key:
+            kept = self._seen_side = (key, faces_seen_side(vertices, faces, self.points_,
+                                                           self.up))
+        return kept[1]
 
     def _check_mesh_params_given(self, params) -> None:
         """Validate re-mesh parameters without keeping them (raises `InvalidInputError`)."""

@@ -27,7 +27,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from bench.baselines import ball_pivoting, open3d_available, poisson  # noqa: E402
-from reconstruct.join import border_loops  # noqa: E402
+from reconstruct.mesh_edges import border_loops  # noqa: E402
 from reconstruct.metrics import surface_report  # noqa: E402
 from reconstruct.pipeline import SurfaceReconstructor  # noqa: E402
 from sim.awkward_objects import AWKWARD, GENUS, relief, sample_cloud  # noqa: E402

@@ -57,10 +57,9 @@ from .join import (
     owned,
     stretched_samples,
     thin_shell,
-    topology,
-    turn_faces,
     vertex_normals,
 )
+from .mesh_edges import topology, turn_faces
 from .sdf_grid import SparseSDF
 from .sheet_graph import SheetGraph
 from .validation import check_points

@@ -24,7 +24,7 @@ samples and extracts its zero level with scikit-image's marching cubes.
   hold instead (the closing is for the holes beside the samples, not for the space they face);
   the grid is opened and smoothed by a voxel (no sub-voxel tunnels; not in front of the
   ``kept_open`` samples, the shells of thin parts across a narrow gap), and vertices where
-  two sheets touch are split (`split_nonmanifold`): the mesh is the boundary of a volume,
+  two sheets touch are split (`mesh_edges.split_nonmanifold`): the mesh is the boundary of a volume,
   watertight. The grid is `reconstruct.closed_grid.ClosedSDF`'s, re-evaluated on a re-mesh
   only round the samples that changed.
 """
@@ -36,13 +36,22 @@ import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import (
     breadth_first_order,
-    connected_components,
     minimum_spanning_tree,
 )
 from scipy.spatial import cKDTree
 
 from .closed_grid import ClosedSDF, exterior_of, grid_box, occupancy
 from .errors import InvalidInputError
+from .mesh_edges import (
+    close_small_holes,
+    edge_runs,
+    face_volumes,
+    piece_labels,
+    signed_volume,
+    split_nonmanifold,
+    topology,
+    turn_faces,
+)
 from .sdf_grid import QUERY_THREADS, SparseSDF
 
 #: The revision of the join's method, part of the key of the mesh a grid keeps (and saves): an
@@ -370,7 +379,7 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
             1 + 1e-9), workers=QUERY_THREADS)[0] > trim * voxel
         mesh.update_faces(~far)
         mesh.remove_unreferenced_vertices()
-    runs = _edge_runs(np.asarray(mesh.faces))
+    runs = edge_runs(np.asarray(mesh.faces))
     piece = piece_labels(mesh.faces, runs)
     if piece.max() > 0:
         sizes = np.bincount(piece)
@@ -396,7 +405,7 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
 
 def _voids(mesh: trimesh.Trimesh, piece: np.ndarray, runs, largest: int) -> np.ndarray:
     """(p,) bool: which pieces of a closed join's ``mesh`` (``piece`` (f,) label of each face;
-    ``runs`` its `_edge_runs`) are voids: closed, and turned the other way from the
+    ``runs`` its `edge_runs`) are voids: closed, and turned the other way from the
     ``largest`` (marching cubes orients every piece by the grid's sign, so such a piece bounds
     outside values enclosed by inside ones, within some solid piece). Two layers of samples
     under the surface, a thin part's shell meeting the charts beside it, close one (figurine
@@ -405,7 +414,7 @@ def _voids(mesh: trimesh.Trimesh, piece: np.ndarray, runs, largest: int) -> np.n
     open_edges = np.repeat(run_length != 2, run_length)  # the half-edges, in edge order
     n = int(piece.max()) + 1
     closed = np.bincount(piece[order[open_edges] // 3], minlength=n) == 0
-    volume = np.bincount(piece, _face_volumes(mesh), minlength=n)
+    volume = np.bincount(piece, face_volumes(mesh), minlength=n)
     return closed & closed[largest] & (volume * volume[largest] < 0)
 
 
@@ -439,217 +448,3 @@ def check_up(up) -> np.ndarray:
     if not (np.isfinite(norm) and norm > 0):
         raise InvalidInputError(f"up must be a finite, non-zero 3-vector, got {up!r}")
     return vector / norm
-
-
-def turn_faces(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
-    """Reverse the winding of every face of ``mesh`` (in place). trimesh's ``invert`` keeps
-    face normals cached before it un-negated (trimesh 5.2: it sets the negated normals while
-    the faces are still the old ones, its setter refuses them, and the old stay cached)."""
-    mesh.faces = np.ascontiguousarray(np.asarray(mesh.faces)[:, ::-1])
-    return mesh
-
-
-def signed_volume(mesh: trimesh.Trimesh) -> float:
-    """The volume a closed ``mesh`` encloses, negative when its faces turn inwards (trimesh's
-    ``volume`` computes every mass property for it: 40 ms of a 45k-vertex re-mesh)."""
-    return float(_face_volumes(mesh).sum()) / 6.0
-
-
-def _face_volumes(mesh: trimesh.Trimesh) -> np.ndarray:
-    """(f,) six times the signed volume of the tetrahedron of each face and the origin."""
-    a, b, c = (np.asarray(mesh.vertices)[np.asarray(mesh.faces)[:, k]] for k in range(3))
-    return np.einsum("ij,ij->i", a, np.cross(b, c))
-
-
-def split_nonmanifold(mesh: trimesh.Trimesh, runs=None) -> trimesh.Trimesh:
-    """``mesh`` with every vertex where faces meet in more than one fan (or only along an edge
-    shared by more than two faces) split into one vertex per fan: where marching cubes lets two
-    sheets touch in a grid cell, they are parted. Positions are unchanged. ``runs``: the
-    mesh's `_edge_runs` if the caller has them."""
-    faces = np.asarray(mesh.faces)
-    n_faces = len(faces)
-    directed, order, run_start, run_length = _edge_runs(faces) if runs is None else runs
-    corner_a = (3 * np.arange(n_faces)[:, None] + np.array([0, 1, 2])).ravel()
-    corner_b = (3 * np.arange(n_faces)[:, None] + np.array([1, 2, 0])).ravel()
-    pairs = run_start[run_length == 2]
-    first, second = order[pairs], order[pairs + 1]  # the two half-edges of each manifold edge
-    # half-edge a→b of one face meets b→a of the other: join the corners at a and at b
-    rows = np.concatenate([corner_a[first], corner_b[first]])
-    cols = np.concatenate([corner_b[second], corner_a[second]])
-    same = directed[first, 0] == directed[second, 0]  # faces wound against each other
-    flipped = np.r_[same, same]
-    cols[flipped] = np.concatenate([corner_a[second], corner_b[second]])[flipped]
-    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * n_faces,) * 2)
-    n_fans, fan = connected_components(graph, directed=False)
-    if n_fans == len(mesh.vertices):  # one fan a vertex: nothing to split
-        return mesh
-    old_vertex = faces.ravel()
-    _, first_corner = np.unique(fan, return_index=True)
-    return trimesh.Trimesh(np.asarray(mesh.vertices)[old_vertex[first_corner]],
-                           fan.reshape(-1, 3), process=False)
-
-
-def _edge_keys(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The half-edges (3f, 2) of ``faces`` (f, 3), in the faces' direction, and one int64 key
-    (3f,) per undirected edge (equal keys: the same edge; sorted keys: lexicographic order)."""
-    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    low = np.minimum(directed[:, 0], directed[:, 1]).astype(np.int64)
-    high = np.maximum(directed[:, 0], directed[:, 1]).astype(np.int64)
-    return directed, low * (int(high.max(initial=0)) + 1) + high
-
-
-def _edge_runs(faces: np.ndarray) -> tuple:
-    """The edges of ``faces`` (f, 3) sorted once for every count of them: the half-edges
-    (3f, 2) in the faces' direction, their indices (3f,) in the order of their undirected edges,
-    and where each edge's run of half-edges starts in that order (e,) and how long it is (e,)."""
-    directed, key = _edge_keys(faces)
-    order = np.argsort(key)  # which of an edge's half-edges comes first matters to no caller
-    ordered = key[order]
-    run_start = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]]) if len(key) else order
-    return directed, order, run_start, np.diff(np.r_[run_start, len(key)])
-
-
-def topology(faces: np.ndarray, runs=None) -> tuple[bool, bool, int]:
-    """(watertight, winding consistent, Euler characteristic) of ``faces`` (f, 3), as trimesh's
-    ``is_watertight``, ``is_winding_consistent`` and ``euler_number`` define them (every edge in
-    exactly two faces; the two run opposite ways; referenced vertices − edges + faces), from one
-    sort of the edges (trimesh's took 35 ms of a 45k-vertex re-mesh). ``runs``: `_edge_runs`."""
-    if len(faces) == 0:
-        return False, False, 0
-    directed, order, run_start, run_length = _edge_runs(faces) if runs is None else runs
-    pairs = run_start[run_length == 2]
-    winding = bool(np.all(directed[order[pairs], 1] == directed[order[pairs + 1], 0]))
-    referenced = int(np.count_nonzero(np.bincount(np.ravel(faces))))
-    return bool(np.all(run_length == 2)), winding, referenced - len(run_start) + len(faces)
-
-
-def piece_labels(faces: np.ndarray, runs=None) -> np.ndarray:
-    """(f,) the piece of each of ``faces`` (f, 3), pieces joined across edges of exactly two
-    faces (as trimesh's ``split`` finds them), from one integer key per edge (fast).
-    ``runs``: `_edge_runs` of the faces if the caller has them."""
-    if len(faces) == 0:
-        return np.zeros(0, np.int64)
-    _, order, run_start, run_length = _edge_runs(faces) if runs is None else runs
-    pairs = run_start[run_length == 2]
-    first, second = order[pairs] // 3, order[pairs + 1] // 3
-    adjacency = coo_matrix((np.ones(len(first)), (first, second)), shape=(len(faces),) * 2)
-    return connected_components(adjacency, directed=False)[1]
-
-
-def border_loops(faces: np.ndarray, runs=None) -> list[np.ndarray]:
-    """Closed loops (vertex indices, in the faces' direction) of the edges of ``faces`` (f, 3)
-    that belong to one face only. A vertex where two loops touch is walked through once each.
-    ``runs``: `_edge_runs` of the faces if the caller has them."""
-    return _walked_loops(_border_edges(faces, runs))
-
-
-def _border_edges(faces: np.ndarray, runs=None) -> np.ndarray:
-    """(b, 2) the edges of ``faces`` (f, 3) in one face only, in the faces' direction and
-    order. ``runs``: `_edge_runs` of the faces if the caller has them."""
-    directed, order, run_start, run_length = _edge_runs(faces) if runs is None else runs
-    return directed[np.sort(order[run_start[run_length == 1]])]
-
-
-def _walked_loops(border: np.ndarray) -> list[np.ndarray]:
-    """The closed loops of the ``border`` edges (b, 2), each from its first edge's start."""
-    following: dict[int, list[int]] = {}
-    for a, b in border.tolist():
-        following.setdefault(a, []).append(b)
-    loops = []
-    for start in list(following):
-        while following.get(start):
-            loop, here = [start], following[start].pop()
-            while here != start and following.get(here):
-                loop.append(here)
-                here = following[here].pop()
-            if here == start:
-                loops += [np.array(cycle) for cycle in _simple_cycles(loop) if len(cycle) >= 3]
-    return loops
-
-
-def _simple_cycles(loop: list[int]) -> list[list[int]]:
-    """Split a closed walk that passes a vertex more than once into simple cycles."""
-    cycles, stack, at = [], [], {}
-    for vertex in loop:
-        if vertex in at:
-            start = at[vertex]
-            cycles.append(stack[start:])
-            for dropped in stack[start + 1:]:
-                at.pop(dropped)
-            del stack[start + 1:]
-        else:
-            at[vertex] = len(stack)
-            stack.append(vertex)
-    cycles.append(stack)
-    return cycles
-
-
-def close_small_holes(mesh: trimesh.Trimesh, max_length: float, runs=None) -> trimesh.Trimesh:
-    """Cap every border loop of ``mesh`` shorter than ``max_length``, wound like the faces
-    beside it: a loop of 3 or 4 edges with 1 or 2 triangles (as trimesh's ``fill_holes``),
-    a longer one with a fan about its centroid. Longer loops (borders, holes in the data)
-    stay. ``runs``: the mesh's `_edge_runs` if the caller has them. The mesh has no
-    unreferenced or coincident vertices (marching cubes' mesh, as `implicit_mesh` passes it):
-    they are neither merged nor dropped.
-
-    The loops are the pieces of the border edges, measured at once; only the few where loops
-    touch at a vertex are walked one by one (walking them all took 46 ms of a scan's 0.5 s
-    open join)."""
-    border = _border_edges(mesh.faces, runs)
-    if len(border) == 0:
-        return mesh
-    vertices = np.asarray(mesh.vertices)
-    ids, local = np.unique(border, return_inverse=True)
-    local = local.reshape(-1, 2)
-    n = len(ids)
-    graph = coo_matrix((np.ones(len(local)), (local[:, 0], local[:, 1])), shape=(n, n))
-    _, piece = connected_components(graph, directed=False)
-    loop = piece[local[:, 0]]  # (b,) the piece of each edge
-    touching = (np.bincount(local[:, 0], minlength=n) != 1) | (
-        np.bincount(local[:, 1], minlength=n) != 1)
-    simple = np.bincount(piece, touching) == 0  # every vertex starts and ends one edge
-    size = np.bincount(loop, minlength=len(simple))
-    length = np.bincount(loop, np.linalg.norm(vertices[border[:, 1]] - vertices[border[:, 0]],
-                                              axis=1), minlength=len(simple))
-    capped = simple & (size >= 3) & (length <= max_length)
-    # a border edge a -> b lies in one face; a cap runs it b -> a
-    following = np.full(n, -1)
-    following[local[:, 0]] = local[:, 1]
-    loops, first = np.unique(loop, return_index=True)  # each loop from its first edge
-    loops, first = loops[capped[loops]], first[capped[loops]]
-    l0, l1 = local[first, 0], local[first, 1]
-    l2 = following[l1]
-    l3 = following[l2]
-    triangle, quad = size[loops] == 3, size[loops] == 4
-    small = np.concatenate([np.column_stack([l2, l1, l0])[triangle],
-                            np.column_stack([l3, l2, l1])[quad],
-                            np.column_stack([l3, l1, l0])[quad]])
-    fans = loops[size[loops] > 4]
-    centre = np.full(len(simple), -1)
-    centre[fans] = len(vertices) + np.arange(len(fans))
-    fanned = centre[loop] >= 0
-    faces = [np.asarray(mesh.faces), ids[small], np.column_stack(
-        [ids[local[fanned, 1]], ids[local[fanned, 0]], centre[loop[fanned]]])]
-    sums = [np.bincount(loop, vertices[border[:, 0], k], len(simple))[fans] for k in range(3)]
-    new_vertices = [vertices, np.column_stack(sums) / size[fans, None]]
-    count = len(vertices) + len(fans)
-    for walked in _walked_loops(border[~simple[loop]]):  # loops touching at a vertex
-        ring = vertices[walked]
-        if np.linalg.norm(np.diff(ring, axis=0, append=ring[:1]), axis=1).sum() > max_length:
-            continue
-        if len(walked) == 3:
-            faces.append(walked[None, ::-1])
-        elif len(walked) == 4:
-            faces.append(np.array([[walked[3], walked[2], walked[1]],
-                                   [walked[3], walked[1], walked[0]]]))
-        else:
-            new_vertices.append(ring.mean(axis=0, keepdims=True))
-            faces.append(np.column_stack([np.roll(walked, -1), walked,
-                                          np.full(len(walked), count)]))
-            count += 1
-    added = np.concatenate(faces[1:])
-    if len(added) == 0:
-        return mesh
-    # marching cubes gives one vertex per grid edge, and a centroid lands on none of them
-    return trimesh.Trimesh(np.concatenate(new_vertices), np.concatenate([faces[0], added]),
-                           process=False)

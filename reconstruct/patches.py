@@ -45,7 +45,7 @@ from sklearn.base import BaseEstimator, clone
 from reconstruct.errors import InvalidInputError
 
 from .faithfulness import FOLD_LIMIT, UNEXPLAINED_LIMIT, fold_share, unexplained_fraction
-from .join import turn_faces
+from .mesh_edges import turn_faces
 
 log = logging.getLogger(__name__)
 

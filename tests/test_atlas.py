@@ -19,7 +19,8 @@ from reconstruct.errors import (
     ReconstructionWarning,
 )
 from reconstruct.faithfulness import fold_share
-from reconstruct.join import close_small_holes, implicit_mesh
+from reconstruct.join import implicit_mesh
+from reconstruct.mesh_edges import close_small_holes
 from reconstruct.metrics import distance_to_surface, surface_report
 from reconstruct.pipeline import SurfaceReconstructor
 

@@ -10,12 +10,10 @@ from reconstruct.join import (
     exterior_votes,
     faces_seen_side,
     implicit_mesh,
-    split_nonmanifold,
     stretched_samples,
     thin_shell,
-    topology,
-    turn_faces,
 )
+from reconstruct.mesh_edges import split_nonmanifold, topology, turn_faces
 
 
 def tube_samples(gap: float = 0.0, n: int = 6000, seed: int = 0):

@@ -23,6 +23,7 @@ gradient by ~1e-4 relative, far below what early stopping resolves (`MIN_GAIN`).
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg.lapack import dposv
 from scipy.special import expit
 
 from .networks import linears, load_torch
@@ -119,9 +120,9 @@ class ProjectedMLP:
                 design[:, :width] = hs[-1]
                 normal = a.T @ design  # (w + 1, w + 1 + n_out): gram | right-hand side
                 normal[diagonal, diagonal] += ridge
-                try:
-                    out = np.linalg.solve(normal[:, : width + 1], normal[:, width + 1 :])
-                except np.linalg.LinAlgError:
+                # Cholesky (LAPACK's dposv: a quarter of np.linalg.solve's call overhead)
+                _, out, failed = dposv(normal[:, : width + 1], normal[:, width + 1 :])
+                if failed:  # not positive definite: diverged
                     return np.inf, np.zeros_like(theta)
                 residual = a @ out - y
                 value = (float(np.vdot(residual, residual)) + ridge * float(np.vdot(out, out)))

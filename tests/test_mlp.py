@@ -200,6 +200,40 @@ def test_the_split_is_85_10_5_disjoint_with_two_held_out_samples_at_least(n):
         assert abs(len(train) / n - 0.85) < 0.01 and abs(len(test) / n - 0.10) < 0.01
 
 
+@pytest.mark.parametrize(("n", "cap", "n_bags", "covered"),
+                         [(1600, 6000, 1, 1360), (500, 300, 2, 425), (1000, 300, 3, 850),
+                          (5000, 300, 3, 900)])
+def test_the_final_fits_of_a_large_cloud_each_train_on_a_share_of_its_own(n, cap, n_bags,
+                                                                         covered):
+    parts = AdaptiveMLP(max_train_points=cap)._split(n, np.random.default_rng(0))
+    held_out = set(parts["test"]) | set(parts["validation"])
+    seen = set()
+    assert len(parts["bags"]) == n_bags
+    for bag in parts["bags"]:
+        assert len(bag) <= cap and not set(bag) & (seen | held_out)
+        seen |= set(bag)
+    assert len(seen) == covered
+    assert set(parts["train"]) <= seen
+
+
+def test_each_final_fit_trains_on_its_own_bag(monkeypatch):
+    import reconstruct.mlp as mlp_module
+
+    train, rows = mlp_module.AdaptiveMLP._train, []
+
+    def spy(self, net, tensors, max_epochs=None, patience=None):
+        if max_epochs == self.final_epochs:
+            rows.append({tuple(r) for r in tensors["train"][0].numpy()})
+        return train(self, net, tensors, max_epochs, patience)
+
+    monkeypatch.setattr(mlp_module.AdaptiveMLP, "_train", spy)
+    uv, xyz = paraboloid(1000)
+    AdaptiveMLP(hidden_layers=(3,), final_epochs=3, max_train_points=300, random_state=0).fit(
+        uv, xyz)
+    assert len(rows) == 3 and all(len(r) == 284 or len(r) == 283 for r in rows)
+    assert not rows[0] & rows[1] and not rows[1] & rows[2] and not rows[0] & rows[2]
+
+
 @pytest.mark.parametrize("layers", [(4,), (5, 3)])
 def test_the_final_net_is_the_mean_of_two_fits_as_one_mlp(layers):
     import torch

@@ -14,15 +14,16 @@ bench/quality.py (S-curve and half torus, seeds 1 and 2): the lowest error alone
 such as (6,) or (14,) that underfit, with meshes up to 2.6× the Chamfer distance.
 
 Training is full-batch L-BFGS of the hidden layers of the nets of `networks.py`, their linear
-output layer solved by least squares at every step (variable projection, `lbfgs.py`: torch
-computes the loss and its gradient, scipy's compiled L-BFGS-B takes the steps), with the torch,
-BLAS and OpenMP pools at one thread whatever the shell sets (`networks.one_torch_thread`). The
-chosen configuration is then trained to convergence from its searched weights and from fresh
-starts, and the mean of those that agree is kept (one MLP with them side by side). That net is
-written as ONNX with its normalisation inside (`onnx_writer`); `predict` and meshing run
-on onnxruntime.
+output layer solved by least squares at every step (variable projection, `lbfgs.py`: numpy
+computes the loss and its gradient on the torch nets' weights, scipy's compiled L-BFGS-B takes
+the steps), with the torch, BLAS and OpenMP pools at one thread whatever the shell sets
+(`networks.one_torch_thread`). The chosen configuration is then trained to convergence from its
+searched weights and from fresh starts (on a large cloud each on its own share of the samples),
+and the mean of those that agree is kept (one MLP with them side by side). That net is written
+as ONNX with its normalisation inside (`onnx_writer`); `predict` and meshing run on
+onnxruntime.
 
-About 490 lines: the search and its final fits share the samples, the random streams and the
+About 510 lines: the search and its final fits share the samples, the random streams and the
 stored errors, so they stay one estimator (the nets and their training loop are apart).
 """
 
@@ -102,13 +103,13 @@ class AdaptiveMLP(BaseEstimator):
         the search of bench/speed.py 2–3× faster again, but its layers close sooner: on
         bench/quality.py's half torus at 20,000 points it settled on (10, 12) where "fresh"
         found (19, 20), with 1.2× the Chamfer distance.
-    max_train_points : training samples are capped (randomly) for speed on large clouds. The
-        final fits of a larger cloud each train on a share of their own (up to
-        1 + ``final_starts`` disjoint random shares of the training split, each capped), so
-        their mean learns from up to that many times the samples at the cost of one: bench's
-        dense cone, 20,000 points σ 0.5 %, seeds 0 and 2, Chamfer-L1 0.000478 → 0.000385 and
-        0.000552 → 0.000348 (every final fit on the same 6,000: the 20,000 cases' fits differ
-        from the truth by more than their held-out error can see).
+    max_train_points : training samples are capped (randomly) for speed on large clouds. With
+        ``final_fit="mean"`` the final fits of a larger cloud each train on a share of their own
+        (up to 1 + ``final_starts`` disjoint random shares of the training split, each
+        capped), so their mean learns from up to that many times the samples at the cost of
+        one: bench's dense cone, 20,000 points σ 0.5 %, seeds 0 and 2, Chamfer-L1 0.000478 →
+        0.000385 and 0.000552 → 0.000348 (every final fit on the same 6,000: the 20,000 cases'
+        fits differ from the truth by more than their held-out error can see).
     final_fit : "mean" keeps the mean of the chosen configuration's final fits (warm and
         ``final_starts`` fresh; one MLP that many times as wide, see `_train_final`) but for
         those whose weighted error is over 5 % above the best, "better" always the one with
@@ -383,8 +384,9 @@ class AdaptiveMLP(BaseEstimator):
 
     def _split(self, n: int, rng) -> dict:
         """Row indices of each part (`_samples`); "bags" splits the whole training part into
-        up to 1 + ``final_starts`` disjoint random shares of at most ``max_train_points``
-        (one, the capped "train", when that holds it)."""
+        up to 1 + ``final_starts`` disjoint random shares of at most ``max_train_points`` for
+        the mean of the final fits (one, the capped "train", when that holds it, or for
+        ``final_fit="better"``, which compares the fits' errors)."""
         order = rng.permutation(n)
         n_test = max(2, int(round(SPLIT[1] * n)))
         n_train = min(int(round(SPLIT[0] * n)), n - n_test - 2)  # validation: 2 samples at least
@@ -395,7 +397,10 @@ class AdaptiveMLP(BaseEstimator):
         }
         held_out = max(2, self.max_train_points // 4)
         caps = {"train": self.max_train_points, "test": held_out, "validation": held_out}
-        n_bags = min(1 + int(self.final_starts), -(-len(parts["train"]) // self.max_train_points))
+        n_bags = 1
+        if self.final_fit == "mean":
+            n_bags = min(1 + int(self.final_starts),
+                         -(-len(parts["train"]) // self.max_train_points))
         bags = [np.sort(b[: self.max_train_points])
                 for b in np.array_split(parts["train"], n_bags)]
         parts = {k: np.sort(v[: caps[k]]) for k, v in parts.items()}

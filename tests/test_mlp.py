@@ -214,6 +214,9 @@ def test_the_final_fits_of_a_large_cloud_each_train_on_a_share_of_its_own(n, cap
         seen |= set(bag)
     assert len(seen) == covered
     assert set(parts["train"]) <= seen
+    better = AdaptiveMLP(max_train_points=cap, final_fit="better")._split(
+        n, np.random.default_rng(0))  # compares its fits' errors: on the same samples
+    assert len(better["bags"]) == 1 and np.array_equal(better["bags"][0], better["train"])
 
 
 def test_each_final_fit_trains_on_its_own_bag(monkeypatch):

@@ -125,8 +125,8 @@ def verdicts(rows: list[dict]) -> list[str]:
                        ("≤ 60 s", r["seconds"] <= 60)]
         elif case == "sheets":
             checks += [("F ≥ 0.95", r["fscore"] >= 0.95),
-                       (f"never merged (gap open at {r['gap_open']:.0%} of its mid-plane)",
-                        r["gap_open"] >= 0.99)]
+                       (f"never merged (gap open at {r['gap_open']:.1%} of its mid-plane, "
+                        "99 % asked)", r["gap_open"] >= 0.99)]
         else:
             kept_open, truth_holes = r["holes"].split("/")
             checks += [("denoise ≤ 0.6", r["denoise_ratio"] <= 0.6),

@@ -2,14 +2,22 @@
 
 from __future__ import annotations
 
+import functools
+import sys
+
 import numpy as np
 import trimesh
 
 
+@functools.cache
 def open3d_available() -> bool:
+    """Whether Open3D imports; when it is installed but fails (a missing system library, such
+    as libusb), says why on stderr once, since the peers' rows then silently go missing."""
     try:
         import open3d  # noqa: F401
-    except ImportError:
+    except ImportError as error:
+        if getattr(error, "name", None) != "open3d":
+            print(f"Open3D is installed but does not import: {error}", file=sys.stderr)
         return False
     return True
 

@@ -41,7 +41,7 @@ HIDDEN_DTYPE = "float32"
 
 #: Each hidden activation (by its torch module's name) in numpy, with its derivative d h / d z
 #: as a function of (z, h); the dtype of z is kept.
-ACTIVATIONS = {
+NUMPY_ACTIVATIONS = {
     "Tanh": (np.tanh, None),  # h' = 1 - h², taken in place in `loss_and_gradient`
     "Sigmoid": (expit, lambda z, h: h * (1.0 - h)),
     "ReLU": (lambda z: np.maximum(z, 0), lambda z, h: (z > 0).astype(z.dtype)),
@@ -68,7 +68,7 @@ class ProjectedMLP:
         layers = linears(net)
         self.hidden, self.output = layers[:-1], layers[-1]
         activation = next(m for m in net if not isinstance(m, torch.nn.Linear))
-        self.activation, self.derivative = ACTIVATIONS[type(activation).__name__]
+        self.activation, self.derivative = NUMPY_ACTIVATIONS[type(activation).__name__]
         self.tanh = self.derivative is None
         self.shapes = [(layer.in_features, layer.out_features) for layer in self.hidden]
         self.cached = None  # (theta, output weights (w + 1, n_out)) last solved

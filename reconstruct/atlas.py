@@ -164,35 +164,64 @@ class AtlasReconstructor(BaseEstimator):
         self.n_jobs = n_jobs
         self.random_state = random_state
 
+    def warm(self) -> AtlasReconstructor:
+        """Start the chart workers importing torch and the pipeline before the cloud to chart
+        is known (`start` then gives them the decomposition): `SurfaceReconstructor` warms
+        them while it embeds a large cloud, so they are ready for the atlas or for its final
+        fits (`idle_workers`). Without workers (``n_jobs=1``, a daemonic process) nothing
+        starts."""
+        self.cancel()
+        workers = chart_workers(self.n_jobs, warm=False)
+        if workers is not None:
+            self._started = (None, None, workers, None, warm_up(workers,
+                                                                 n_chart_workers(self.n_jobs)))
+        return self
+
     def start(self, points) -> AtlasReconstructor:
         """Begin a `fit` of ``points`` (n, 3) in the background, while the caller does other
-        work: the chart workers start, one of them decomposes the cloud, and they import
-        torch. A later ``fit(points)`` of the same array takes both up (of the parameters,
-        only ``hidden_layers`` and ``n_neighbors`` may change in between); `cancel` drops
-        them. Without workers (``n_jobs=1``, a daemonic process) nothing starts. Until then
-        the estimator holds a process pool: it cannot be pickled or copied. Rough 20k: the
-        decomposition (2.1 s) runs while `SurfaceReconstructor` searches one chart's net,
-        which decides whether the atlas is needed."""
-        self.cancel()
+        work: the chart workers start (or those of `warm` serve), one of them decomposes the
+        cloud, and they import torch. A later ``fit(points)`` of the same array takes both up
+        (of the parameters, only ``hidden_layers`` and ``n_neighbors`` may change in
+        between); `cancel` drops them. Without workers (``n_jobs=1``, a daemonic process)
+        nothing starts. Until then the estimator holds a process pool: it cannot be pickled
+        or copied. Rough 20k: the decomposition (2.1 s) runs while `SurfaceReconstructor`
+        searches one chart's net, which decides whether the atlas is needed."""
         charted = self._charted(check_points(points))
-        workers = chart_workers(self.n_jobs, warm=False)
+        started = self.__dict__.get("_started")
+        if started is not None and started[0] is None:  # warmed (`warm`): not begun on a cloud
+            workers, warming = started[2], started[4]
+        else:
+            self.cancel()
+            workers, warming = chart_workers(self.n_jobs, warm=False), None
         if workers is None:
             return self
         decomposition = workers.submit(self._decomposition().fit, charted)
-        warming = warm_up(workers, n_chart_workers(self.n_jobs))  # the decomposition needs none
+        if warming is None:  # after the decomposition, which needs no torch
+            warming = warm_up(workers, n_chart_workers(self.n_jobs))
         self._started = (points, charted, workers, decomposition, warming)
         return self
 
+    def idle_workers(self) -> tuple:
+        """(executor, number of workers) of the pool `warm` or `start` began once it has
+        imported torch and decomposed the cloud if asked, or (None, 0): idle, it may serve
+        other fitting until `fit` or `cancel`."""
+        started = self.__dict__.get("_started")
+        if started is None or not all(f.done() for f in (started[3], *started[4])
+                                      if f is not None):
+            return None, 0
+        return started[2], len(started[4])  # one import per worker
+
     def cancel(self) -> None:
-        """Drop what `start` began: wait for the decomposition, then stop the workers in their
-        torch import (waiting for the import cost a 20k sphere cap's one-chart fit 2.2 s).
+        """Drop what `warm` or `start` began: wait for a decomposition, then stop the workers
+        in their torch import (waiting for the import cost a 20k sphere cap's one-chart fit 2.2 s).
         Loky's `kill_workers` earlier than that left a worker blocked sending its result, or
         its manager thread raised on an item not yet dispatched."""
         started = self.__dict__.pop("_started", None)
         if started is None:
             return
         _, _, workers, decomposition, warming = started
-        wait_for([decomposition])
+        if decomposition is not None:
+            wait_for([decomposition])
         deadline = time.monotonic() + 10.0
         while not all(f.running() or f.done() for f in warming):  # dispatched, in a moment
             if time.monotonic() > deadline:

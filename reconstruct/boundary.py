@@ -384,7 +384,9 @@ def _dijkstra_path(points, inward, c1, c2, k, reach) -> np.ndarray | None:
     step = np.concatenate([length, length])
     # A tiny floor keeps coincident points as edges (csgraph drops explicit zeros).
     weight = c1 * step + c2 * inward[head] + 1e-12 * (1.0 + step.max())
-    graph = csr_matrix((weight, (tail, head)), shape=(n, n))
+    order = np.argsort(tail * n + head)  # CSR directly: the COO route's checks cost 3x
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(tail, minlength=n))])
+    graph = csr_matrix((weight[order], head[order], indptr), shape=(n, n))
     cost, pred = dijkstra(graph, directed=True, indices=0, return_predecessors=True)
     if not np.isfinite(cost[n - 1]):
         return None

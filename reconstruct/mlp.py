@@ -33,9 +33,10 @@ import logging
 import time
 
 import numpy as np
-from sklearn.base import BaseEstimator
+from sklearn.base import BaseEstimator, clone
 
 from .errors import InvalidInputError, NotFittedError
+from .io import one_line
 from .lbfgs import train_lbfgs
 from .networks import (
     build,
@@ -254,9 +255,11 @@ class AdaptiveMLP(BaseEstimator):
         self._searched = (net, tensors, generator, self.timings_["search"])
         return self
 
-    def finish(self) -> AdaptiveMLP:
+    def finish(self, executor=None, n_workers: int = 1) -> AdaptiveMLP:
         """The final fits of the searched configuration (`_train_final`, or `_retrain`) and
-        its ONNX map. Returns self."""
+        its ONNX map. ``executor``: a pool of ``n_workers`` idle worker processes
+        (`concurrent.futures`) that train as many fresh starts while this process trains the
+        others; the same net as without. Returns self."""
         if not hasattr(self, "_searched"):
             raise NotFittedError("search() the AdaptiveMLP before finish()")
         net, tensors, generator, searching = self._searched
@@ -266,7 +269,7 @@ class AdaptiveMLP(BaseEstimator):
             if self.retrain and self.hidden_layers is None:
                 net = self._retrain(net, tensors, generator)
             else:
-                net = self._train_final(net, tensors, generator)
+                net = self._train_final(net, tensors, generator, executor, n_workers)
         trained = time.perf_counter()
         self.torch_model_ = net.eval()
         self._store_errors(tensors)
@@ -456,7 +459,7 @@ class AdaptiveMLP(BaseEstimator):
             "seconds": time.perf_counter() - started,
         }
 
-    def _train_final(self, net, tensors, generator):
+    def _train_final(self, net, tensors, generator, executor=None, n_workers: int = 1):
         """Train the chosen configuration to convergence from its searched weights and from
         ``final_starts`` fresh initialisations; return their mean (``final_fit="mean"``,
         leaving out any fit whose error is over ``MEAN_GUARD`` times the best: it stalled) or
@@ -467,7 +470,9 @@ class AdaptiveMLP(BaseEstimator):
         Chamfer-L1 than keeping the better fit, whose held-out error mostly measures the noise.
         The search is over, so the held-out test and validation samples together decide the
         early stop (a steadier signal than the 5 % validation split alone). On a cloud larger
-        than ``max_train_points`` each start trains on its own share (``tensors["bags"]``)."""
+        than ``max_train_points`` each start trains on its own share (``tensors["bags"]``).
+        With an ``executor``, ``n_workers`` of the fresh starts train in its workers
+        (`_train_elsewhere`)."""
         torch = load_torch()
         held_out = tuple(
             torch.cat(pair) for pair in zip(tensors["test"], tensors["validation"], strict=True)
@@ -477,11 +482,30 @@ class AdaptiveMLP(BaseEstimator):
         starts = [(net, "warm")] + [
             (build(self.hidden_layers_, self.activation, n_in, n_out, generator), "fresh")
             for _ in range(int(self.final_starts))]
+        runs = [(start, label, dict(final, train=tensors["bags"][i % len(tensors["bags"])]))
+                for i, (start, label) in enumerate(starts)]  # each its own share of a large cloud
+        fresh = [i for i, (_, label, _) in enumerate(runs) if label == "fresh"]
+        elsewhere = {} if executor is None else {
+            i: executor.submit(_train_elsewhere, clone(self), runs[i][0], runs[i][2],
+                               self.final_epochs, self.final_patience)
+            for i in fresh[:n_workers]}
+        if elsewhere:
+            log.info("%d of %d final fits in worker processes", len(elsewhere), len(runs))
+        trained = {}
+        for i, (start, _, run) in enumerate(runs):
+            if i not in elsewhere:
+                trained[i] = start, self._train(start, run, self.final_epochs,
+                                                self.final_patience)
+        for i, future in elsewhere.items():
+            try:
+                trained[i] = future.result()
+            except Exception as exc:  # a worker lost (killed, out of memory): train it here
+                log.warning("a final fit's worker failed (%s); training it here", one_line(exc))
+                trained[i] = runs[i][0], self._train(runs[i][0], runs[i][2], self.final_epochs,
+                                                     self.final_patience)
         candidates = []
-        for i, (start, label) in enumerate(starts):
-            bag = tensors["bags"][i % len(tensors["bags"])]  # each its own share of a large cloud
-            record = self._train(start, dict(final, train=bag), self.final_epochs,
-                                 self.final_patience)
+        for i, (_, label, _) in enumerate(runs):
+            start, record = trained[i]
             record.update(layers=self.hidden_layers_, final=label)
             self.history_.append(record)
             candidates.append((record["weighted_mse"], label == "fresh", start))
@@ -514,3 +538,11 @@ class AdaptiveMLP(BaseEstimator):
                   for layer in linears(net)]
         return mlp_model(layers, self.activation, self.x_mean_, self.x_scale_, self.y_mean_,
                          self.y_scale_)
+
+
+def _train_elsewhere(estimator: AdaptiveMLP, net, tensors, max_epochs: int, patience: int):
+    """`AdaptiveMLP._train` of ``net`` in a worker process (``estimator``: an unfitted clone
+    with the fit's parameters); returns (the trained net, its record)."""
+    with one_torch_thread():
+        record = estimator._train(net, tensors, max_epochs, patience)
+    return net, record

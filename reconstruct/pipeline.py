@@ -62,9 +62,12 @@ STATE_FORMAT = "scanstation-reconstruction/1"
 #: (discs 0.51–0.61, closed 0.28–0.41).
 ATLAS_RESIDUAL = 0.015
 ATLAS_MODES = ("auto", "never", "always")
-#: From this many points, an ``atlas="auto"`` fit decomposes the cloud for an atlas on a spare
-#: core while it searches one chart's net (`AtlasReconstructor.start`), in case the searched
-#: mesh shows that one chart cannot hold it. Rough 20k: the 2.1 s decomposition is then hidden.
+#: From this many points, an ``atlas="auto"`` fit starts chart workers on a spare core as it
+#: begins (`AtlasReconstructor.warm`: they import torch while it embeds), then decomposes the
+#: cloud for an atlas there while it searches one chart's net (`AtlasReconstructor.start`), in
+#: case the searched mesh shows that one chart cannot hold it. Rough 20k: the 2.1 s
+#: decomposition is then hidden. When one chart serves, the idle workers train some of its final
+#: fits (`AdaptiveMLP.finish`).
 SPECULATE_FROM = 10000
 _MESH_PARAMS = ("lam", "depth", "n_corners", "boundary", "grid_spacing", "variance", "extend")
 #: Training-only parameters: not saved (a loaded reconstruction re-meshes, it does not train).
@@ -189,6 +192,18 @@ class SurfaceReconstructor(BaseEstimator):
         if self.atlas == "always" and warm_start is None:
             return self._fit_atlas(points, "asked for")
         started = time.perf_counter()
+        spare = None  # chart workers warmed on a spare core, in case one chart cannot serve
+        if warm_start is None and self.atlas == "auto" and len(points) >= SPECULATE_FROM:
+            spare = self._new_atlas().warm()
+        try:
+            return self._fit_from_scratch(points, warm_start, spare, started)
+        finally:
+            if spare is not None:
+                spare.cancel()  # nothing, when the atlas took it up
+
+    def _fit_from_scratch(self, points, warm_start, spare, started):
+        """`fit` from the embedding on (``spare``: an `AtlasReconstructor` whose workers
+        `warm` started, or None)."""
         n_neighbors = self.n_neighbors
         if warm_start is not None:
             if not hasattr(warm_start, "mlp_"):
@@ -207,20 +222,14 @@ class SurfaceReconstructor(BaseEstimator):
             if residual > ATLAS_RESIDUAL:
                 return self._fit_atlas(points, (
                     f"its embedding's residual variance is {residual:.3f} (one disc-like "
-                    f"surface: under {ATLAS_RESIDUAL})"))
+                    f"surface: under {ATLAS_RESIDUAL})"), atlas=spare)
         self.embedding_ = uv
         self.points_ = fitted
         self._boundary_cache = {}
         self.__dict__.pop("_seen_side", None)  # of an earlier fit's embedding
-        spare = None  # an atlas begun on a spare core, in case one chart cannot hold the cloud
-        if warm_start is None and self.atlas == "auto" and len(fitted) >= SPECULATE_FROM:
-            spare = self._new_atlas().start(fitted)
-        try:
-            return self._fit_one_chart(points, fitted, uv, embedding, warm_start, spare,
-                                       started)
-        finally:
-            if spare is not None:
-                spare.cancel()  # nothing, when the atlas took it up
+        if spare is not None:  # the cloud decomposed for an atlas while one chart is searched
+            spare.start(fitted)
+        return self._fit_one_chart(points, fitted, uv, embedding, warm_start, spare, started)
 
     def _fit_one_chart(self, points, fitted, uv, embedding, warm_start, spare, started):
         """The rest of `fit` once the cloud is embedded: search, final fits, mesh, checks;
@@ -238,7 +247,8 @@ class SurfaceReconstructor(BaseEstimator):
                     mlp.hidden_layers_, embedding.n_neighbors_, limit=2 * UNEXPLAINED_LIMIT)
                 if reason is not None:  # plainly one chart cannot hold it: no final fits
                     return self._fit_atlas(*reason, atlas=spare)
-            mlp.finish()
+            executor, n_workers = (None, 0) if spare is None else spare.idle_workers()
+            mlp.finish(executor, n_workers)  # idle, the spare workers train final fits too
         else:
             uv = align_to(uv, fitted, warm_start.embedding_, warm_start.points_,
                           self._warm_tolerance(warm_start))

@@ -4,6 +4,7 @@ closed, open at borders and holes (reconstruct.atlas, reconstruct.join)."""
 import multiprocessing
 import time
 import warnings
+from concurrent.futures import wait as wait_for
 
 import numpy as np
 import pytest
@@ -345,6 +346,43 @@ def test_the_atlas_begun_beside_a_one_chart_search_gives_the_same_mesh(monkeypat
     assert multiprocessing.active_children() == []
     one_chart = SurfaceReconstructor(**params).fit(holed_patch(n=1500, hole=0.0))
     assert not hasattr(one_chart, "atlas_")
+    assert multiprocessing.active_children() == []
+
+
+def test_workers_warmed_for_a_large_cloud_train_its_final_fits_or_serve_its_atlas(
+        monkeypatch, caplog):
+    """The chart workers start importing torch as a large cloud's fit begins: a one-chart fit
+    has them train final fits (the same mesh as without), a closed cloud's atlas takes them up
+    at once."""
+    idle_workers = AtlasReconstructor.idle_workers
+
+    def when_ready(atlas):  # the search may end before the import: wait for it here
+        wait_for([atlas._started[3]] if atlas._started[3] is not None else [])
+        wait_for(atlas._started[4])
+        return idle_workers(atlas)
+
+    points = holed_patch(n=1500, hole=0.0)
+    params = dict(max_layers=1, max_neurons=4)
+    monkeypatch.setattr("reconstruct.pipeline.SPECULATE_FROM", 10**9)
+    alone = SurfaceReconstructor(**params).fit(points)
+    monkeypatch.setattr("reconstruct.pipeline.SPECULATE_FROM", 1000)
+    monkeypatch.setattr(AtlasReconstructor, "idle_workers", when_ready)
+    with caplog.at_level("INFO", "reconstruct.mlp"):
+        warmed = SurfaceReconstructor(**params).fit(points)
+    assert "final fits in worker processes" in caplog.text
+    np.testing.assert_array_equal(alone.mesh_.vertices, warmed.mesh_.vertices)
+    assert multiprocessing.active_children() == []
+    taken_up = []
+    fit = AtlasReconstructor.fit
+
+    def fit_spied(atlas, cloud, y=None):
+        taken_up.append(atlas.__dict__.get("_started", (1,))[0] is None)  # warmed, no cloud
+        return fit(atlas, cloud, y)
+
+    monkeypatch.setattr(AtlasReconstructor, "fit", fit_spied)
+    closed = SurfaceReconstructor(**params).fit(sphere_cloud(n=1500))
+    assert closed.atlas_reason_.startswith("its embedding's residual variance")
+    assert taken_up == [True]
     assert multiprocessing.active_children() == []
 
 

@@ -239,6 +239,40 @@ def test_each_final_fit_trains_on_its_own_bag(monkeypatch):
     assert not rows[0] & rows[1] and not rows[1] & rows[2] and not rows[0] & rows[2]
 
 
+def test_final_fits_in_a_worker_process_give_the_same_net_as_here(caplog):
+    from joblib.externals.loky import ProcessPoolExecutor
+
+    uv, xyz = paraboloid(1000)
+    params = dict(hidden_layers=(4,), final_epochs=30, max_train_points=250, random_state=0)
+    here = AdaptiveMLP(**params).fit(uv, xyz)
+    with ProcessPoolExecutor(max_workers=1) as pool, caplog.at_level("INFO", "reconstruct.mlp"):
+        elsewhere = AdaptiveMLP(**params).search(uv, xyz).finish(pool, n_workers=1)
+    assert "1 of 3 final fits in worker processes" in caplog.text
+    np.testing.assert_array_equal(here.predict(uv), elsewhere.predict(uv))
+    assert [r["epochs"] for r in here.history_] == [r["epochs"] for r in elsewhere.history_]
+
+
+class _LostWorkers:
+    """An executor whose every worker dies (as one killed or out of memory would)."""
+
+    def submit(self, *_, **__):
+        from concurrent.futures import Future
+
+        future = Future()
+        future.set_exception(RuntimeError("worker killed"))
+        return future
+
+
+def test_a_final_fit_whose_worker_dies_is_trained_here(caplog):
+    uv, xyz = paraboloid(1000)
+    params = dict(hidden_layers=(4,), final_epochs=30, random_state=0)
+    here = AdaptiveMLP(**params).fit(uv, xyz)
+    with caplog.at_level("WARNING", "reconstruct.mlp"):
+        lost = AdaptiveMLP(**params).search(uv, xyz).finish(_LostWorkers(), n_workers=2)
+    assert "worker failed (worker killed); training it here" in caplog.text
+    np.testing.assert_array_equal(here.predict(uv), lost.predict(uv))
+
+
 @pytest.mark.parametrize("layers", [(4,), (5, 3)])
 def test_the_final_net_is_the_mean_of_two_fits_as_one_mlp(layers):
     import torch

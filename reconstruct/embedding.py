@@ -31,6 +31,7 @@ from .neighbors import (
     residual_variance,
 )
 from .outliers import statistical_outlier_mask
+from .threads import single_threaded
 
 log = logging.getLogger(__name__)
 
@@ -241,13 +242,14 @@ def landmark_isomap(graph, n_landmarks: int, rng: np.random.Generator):
         if i + 1 < n_landmarks:
             landmarks[i + 1] = np.argmax(nearest)
     squared_landmarks = geodesic[:, landmarks] ** 2
-    _, values, vectors = classical_mds(squared_landmarks)
-    if values[1] <= 1e-12 * values[0]:
-        raise DegenerateCloudError("the landmarks span no 2D surface (geodesically collinear)")
-    # y_x = -1/2 L# (delta_x - delta_mean), L# rows = v_k / sqrt(lambda_k).
-    pseudo_inverse = vectors / np.sqrt(values)
-    mean_squared = squared_landmarks.mean(axis=1)
-    embedding = -0.5 * ((geodesic**2 - mean_squared[:, None]).T @ pseudo_inverse)
+    with single_threaded():  # the same bits whatever the shell sets (BLAS threads reorder sums)
+        _, values, vectors = classical_mds(squared_landmarks)
+        if values[1] <= 1e-12 * values[0]:
+            raise DegenerateCloudError("the landmarks span no 2D surface (geodesically collinear)")
+        # y_x = -1/2 L# (delta_x - delta_mean), L# rows = v_k / sqrt(lambda_k).
+        pseudo_inverse = vectors / np.sqrt(values)
+        mean_squared = squared_landmarks.mean(axis=1)
+        embedding = -0.5 * ((geodesic**2 - mean_squared[:, None]).T @ pseudo_inverse)
     return embedding, landmarks, geodesic
 
 

@@ -8,7 +8,9 @@ search of bench.speed in a plain shell, before and after training ran inside
 `single_threaded` (two runs six minutes apart, scikit-learn's lbfgs 1.2 s in both): sphere
 cap 35.0 s → 5.2 s, rough surface 12.3 s → 11.8 s; the gain depends on the load.
 
-Only the training is limited: the embedding's dense eigenproblems do use a second core. Capping
+Only the training is limited, and landmark Isomap's small MDS (250 landmarks: its eigenvectors
+and the product that places every point, so a 20,000-point embedding has the same bits
+whatever the shell sets). Full Isomap's dense eigenproblems do use a second core. Capping
 every pool of the scan engine's two worker processes at one thread each (threadpoolctl in the
 pool's initializer) took bench.scan's vase from 53 s to 81 s on a quiet machine.
 """

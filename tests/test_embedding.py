@@ -166,6 +166,19 @@ def test_landmark_triangulation_reproduces_the_landmarks():
     np.testing.assert_allclose(embedding[landmarks], coords, atol=1e-9)
 
 
+def test_landmark_isomap_gives_the_same_bits_whatever_the_blas_threads():
+    from threadpoolctl import threadpool_limits
+
+    points = make_shape("s_curve", 6000, noise=0.01, random_state=0).points
+    distances, indices = nearest_neighbors(points, 10)
+    graph = knn_graph(distances, indices)
+    embedded = []
+    for threads in (1, 2):
+        with threadpool_limits(limits=threads):
+            embedded.append(landmark_isomap(graph, 250, np.random.default_rng(0))[0])
+    np.testing.assert_array_equal(*embedded)
+
+
 def test_auto_picks_the_method_by_cloud_size():
     sparse = SurfaceEmbedding().fit(make_shape("sparse_cone").points)  # 36 points
     assert sparse.method_ == "mlle" and sparse.n_neighbors_ >= 6

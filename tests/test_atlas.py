@@ -385,6 +385,14 @@ def test_workers_warmed_for_a_large_cloud_train_its_final_fits_or_serve_its_atla
     assert taken_up == [True]
     assert multiprocessing.active_children() == []
 
+    def search_fails(*_, **__):
+        raise FitError("the search failed")
+
+    monkeypatch.setattr("reconstruct.mlp.AdaptiveMLP.search", search_fails)
+    with pytest.raises(FitError, match="search failed"):
+        SurfaceReconstructor(**params).fit(points)
+    assert multiprocessing.active_children() == []  # a failed fit's warmed workers stop too
+
 
 def test_the_atlas_begun_beside_a_one_chart_search_serves_an_unexplained_cloud(monkeypatch):
     """The atlas for points one chart leaves unexplained fits every input point: the begun one

@@ -206,8 +206,9 @@ class AtlasReconstructor(BaseEstimator):
         imported torch and decomposed the cloud if asked, or (None, 0): idle, it may serve
         other fitting until `fit` or `cancel`."""
         started = self.__dict__.get("_started")
-        if started is None or not all(f.done() for f in (started[3], *started[4])
-                                      if f is not None):
+        if started is None or not all(  # done, and well: a failed import says the pool is not
+                f.done() and not f.cancelled() and f.exception() is None
+                for f in (started[3], *started[4]) if f is not None):
             return None, 0
         return started[2], len(started[4])  # one import per worker
 

@@ -23,7 +23,7 @@ and the mean of those that agree is kept (one MLP with them side by side). That 
 as ONNX with its normalisation inside (`onnx_writer`); `predict` and meshing run on
 onnxruntime.
 
-About 510 lines: the search and its final fits share the samples, the random streams and the
+About 560 lines: the search and its final fits share the samples, the random streams and the
 stored errors, so they stay one estimator (the nets and their training loop are apart).
 """
 
@@ -258,8 +258,9 @@ class AdaptiveMLP(BaseEstimator):
     def finish(self, executor=None, n_workers: int = 1) -> AdaptiveMLP:
         """The final fits of the searched configuration (`_train_final`, or `_retrain`) and
         its ONNX map. ``executor``: a pool of ``n_workers`` idle worker processes
-        (`concurrent.futures`) that train as many fresh starts while this process trains the
-        others; the same net as without. Returns self."""
+        (`concurrent.futures`; not threads, which would train the nets in place) that train as
+        many fresh starts while this process trains the others; the same net as without.
+        Returns self."""
         if not hasattr(self, "_searched"):
             raise NotFittedError("search() the AdaptiveMLP before finish()")
         net, tensors, generator, searching = self._searched
@@ -477,18 +478,22 @@ class AdaptiveMLP(BaseEstimator):
         held_out = tuple(
             torch.cat(pair) for pair in zip(tensors["test"], tensors["validation"], strict=True)
         )
-        final = dict(tensors, validation=held_out)
         n_in, n_out = linears(net)[0].in_features, linears(net)[-1].out_features
         starts = [(net, "warm")] + [
             (build(self.hidden_layers_, self.activation, n_in, n_out, generator), "fresh")
             for _ in range(int(self.final_starts))]
-        runs = [(start, label, dict(final, train=tensors["bags"][i % len(tensors["bags"])]))
+        runs = [(start, label, {"train": tensors["bags"][i % len(tensors["bags"])],
+                                "validation": held_out, "test": tensors["test"]})
                 for i, (start, label) in enumerate(starts)]  # each its own share of a large cloud
         fresh = [i for i, (_, label, _) in enumerate(runs) if label == "fresh"]
-        elsewhere = {} if executor is None else {
-            i: executor.submit(_train_elsewhere, clone(self), runs[i][0], runs[i][2],
-                               self.final_epochs, self.final_patience)
-            for i in fresh[:n_workers]}
+        elsewhere = {}
+        for i in fresh[:n_workers] if executor is not None else ():
+            try:
+                elsewhere[i] = executor.submit(_train_elsewhere, clone(self), runs[i][0],
+                                               runs[i][2], self.final_epochs, self.final_patience)
+            except Exception as exc:  # a broken pool (a worker lost while idle): train here
+                log.warning("final fits' workers unavailable (%s); training here", one_line(exc))
+                break
         if elsewhere:
             log.info("%d of %d final fits in worker processes", len(elsewhere), len(runs))
         trained = {}

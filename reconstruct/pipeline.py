@@ -192,10 +192,11 @@ class SurfaceReconstructor(BaseEstimator):
         if self.atlas == "always" and warm_start is None:
             return self._fit_atlas(points, "asked for")
         started = time.perf_counter()
-        spare = None  # chart workers warmed on a spare core, in case one chart cannot serve
-        if warm_start is None and self.atlas == "auto" and len(points) >= SPECULATE_FROM:
-            spare = self._new_atlas().warm()
+        spare = None  # chart workers warmed on the spare cores, in case one chart cannot serve
         try:
+            if warm_start is None and self.atlas == "auto" and len(points) >= SPECULATE_FROM:
+                spare = self._new_atlas()
+                spare.warm()
             return self._fit_from_scratch(points, warm_start, spare, started)
         finally:
             if spare is not None:
@@ -233,7 +234,8 @@ class SurfaceReconstructor(BaseEstimator):
 
     def _fit_one_chart(self, points, fitted, uv, embedding, warm_start, spare, started):
         """The rest of `fit` once the cloud is embedded: search, final fits, mesh, checks;
-        or the atlas (``spare``: begun by `AtlasReconstructor.start`) when they say so."""
+        or the atlas (``spare``: begun by `AtlasReconstructor.warm` and `start`) when they say
+        so."""
         explained = None  # the distance that explains a point: measured once, if early
         if warm_start is None:
             mlp = self._new_mlp().search(uv, fitted)
@@ -309,8 +311,8 @@ class SurfaceReconstructor(BaseEstimator):
     def _fit_atlas(self, points, reason: str, hidden_layers: tuple[int, ...] | None = None,
                    n_neighbors: int | None = None, atlas=None) -> SurfaceReconstructor:
         """Fit an atlas of charts (`reconstruct.atlas`; ``hidden_layers``: what a one-chart
-        search chose; ``atlas``: one begun with `AtlasReconstructor.start`) and take its mesh;
-        warn in one line when the atlas fails its checks."""
+        search chose; ``atlas``: one begun with `AtlasReconstructor.warm` or `start`) and take
+        its mesh; warn in one line when the atlas fails its checks."""
         log.info("fitting an atlas of charts: %s", reason)
         one_chart = self.timings_  # what it took to find that one chart is not enough
         for name in [n for n in self.__dict__ if n.endswith("_") and not n.startswith("_")]:

@@ -311,7 +311,11 @@ def test_bad_points_after_a_start_leave_no_worker():
     assert multiprocessing.active_children() == []
 
 
-@pytest.mark.skipif(effective_n_jobs(-1) < 2, reason="one core: no worker to begin an atlas on")
+#: Tests whose fit starts chart workers: none start on one core (or in a daemonic process).
+NEEDS_A_SPARE_CORE = pytest.mark.skipif(effective_n_jobs(-1) < 2,
+                                        reason="one core: no worker to begin an atlas on")
+
+
 def spy_on_take_up(monkeypatch) -> list[bool]:
     """Record, for each `AtlasReconstructor.fit`, whether it takes up what `start` began on the
     very array it is given."""
@@ -326,6 +330,7 @@ def spy_on_take_up(monkeypatch) -> list[bool]:
     return taken_up
 
 
+@NEEDS_A_SPARE_CORE
 def test_the_atlas_begun_beside_a_one_chart_search_gives_the_same_mesh(monkeypatch):
     """SurfaceReconstructor decomposes a large cloud on a spare core while it searches one
     chart's net; the atlas it turns to takes that up, and a one-chart fit drops it."""
@@ -349,6 +354,7 @@ def test_the_atlas_begun_beside_a_one_chart_search_gives_the_same_mesh(monkeypat
     assert multiprocessing.active_children() == []
 
 
+@NEEDS_A_SPARE_CORE
 def test_workers_warmed_for_a_large_cloud_train_its_final_fits_or_serve_its_atlas(
         monkeypatch, caplog):
     """The chart workers start importing torch as a large cloud's fit begins: a one-chart fit
@@ -394,6 +400,7 @@ def test_workers_warmed_for_a_large_cloud_train_its_final_fits_or_serve_its_atla
     assert multiprocessing.active_children() == []  # a failed fit's warmed workers stop too
 
 
+@NEEDS_A_SPARE_CORE
 def test_the_atlas_begun_beside_a_one_chart_search_serves_an_unexplained_cloud(monkeypatch):
     """The atlas for points one chart leaves unexplained fits every input point: the begun one
     serves it when the embedding kept them all."""

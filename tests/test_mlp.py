@@ -239,15 +239,23 @@ def test_each_final_fit_trains_on_its_own_bag(monkeypatch):
     assert not rows[0] & rows[1] and not rows[1] & rows[2] and not rows[0] & rows[2]
 
 
-def test_final_fits_in_a_worker_process_give_the_same_net_as_here(caplog):
+def test_final_fits_in_a_worker_process_give_the_same_net_as_here(caplog, monkeypatch):
     from joblib.externals.loky import ProcessPoolExecutor
 
     uv, xyz = paraboloid(1000)
     params = dict(hidden_layers=(4,), final_epochs=30, max_train_points=250, random_state=0)
     here = AdaptiveMLP(**params).fit(uv, xyz)
+    train, trained_here = AdaptiveMLP._train, []
+
+    def counted(self, *args, **kwargs):  # this process only: the worker is not patched
+        trained_here.append(1)
+        return train(self, *args, **kwargs)
+
+    monkeypatch.setattr(AdaptiveMLP, "_train", counted)
     with ProcessPoolExecutor(max_workers=1) as pool, caplog.at_level("INFO", "reconstruct.mlp"):
         elsewhere = AdaptiveMLP(**params).search(uv, xyz).finish(pool, n_workers=1)
     assert "1 of 3 final fits in worker processes" in caplog.text
+    assert len(trained_here) == 2  # the warm start and one fresh start; the other elsewhere
     np.testing.assert_array_equal(here.predict(uv), elsewhere.predict(uv))
     assert [r["epochs"] for r in here.history_] == [r["epochs"] for r in elsewhere.history_]
 
@@ -261,6 +269,23 @@ class _LostWorkers:
         future = Future()
         future.set_exception(RuntimeError("worker killed"))
         return future
+
+
+class _BrokenPool:
+    """An executor whose pool broke while idle: submitting raises (as loky's does)."""
+
+    def submit(self, *_, **__):
+        raise RuntimeError("the pool is broken")
+
+
+def test_final_fits_are_trained_here_when_the_pool_is_broken(caplog):
+    uv, xyz = paraboloid(1000)
+    params = dict(hidden_layers=(4,), final_epochs=30, random_state=0)
+    here = AdaptiveMLP(**params).fit(uv, xyz)
+    with caplog.at_level("WARNING", "reconstruct.mlp"):
+        broken = AdaptiveMLP(**params).search(uv, xyz).finish(_BrokenPool(), n_workers=2)
+    assert "workers unavailable (the pool is broken); training here" in caplog.text
+    np.testing.assert_array_equal(here.predict(uv), broken.predict(uv))
 
 
 def test_a_final_fit_whose_worker_dies_is_trained_here(caplog):

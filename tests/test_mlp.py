@@ -278,24 +278,18 @@ class _BrokenPool:
         raise RuntimeError("the pool is broken")
 
 
-def test_final_fits_are_trained_here_when_the_pool_is_broken(caplog):
+@pytest.mark.parametrize(("pool", "said"), [
+    (_BrokenPool(), "workers unavailable (the pool is broken); training here"),
+    (_LostWorkers(), "worker failed (worker killed); training it here"),
+])
+def test_final_fits_whose_workers_fail_are_trained_here(pool, said, caplog):
     uv, xyz = paraboloid(1000)
     params = dict(hidden_layers=(4,), final_epochs=30, random_state=0)
     here = AdaptiveMLP(**params).fit(uv, xyz)
     with caplog.at_level("WARNING", "reconstruct.mlp"):
-        broken = AdaptiveMLP(**params).search(uv, xyz).finish(_BrokenPool(), n_workers=2)
-    assert "workers unavailable (the pool is broken); training here" in caplog.text
-    np.testing.assert_array_equal(here.predict(uv), broken.predict(uv))
-
-
-def test_a_final_fit_whose_worker_dies_is_trained_here(caplog):
-    uv, xyz = paraboloid(1000)
-    params = dict(hidden_layers=(4,), final_epochs=30, random_state=0)
-    here = AdaptiveMLP(**params).fit(uv, xyz)
-    with caplog.at_level("WARNING", "reconstruct.mlp"):
-        lost = AdaptiveMLP(**params).search(uv, xyz).finish(_LostWorkers(), n_workers=2)
-    assert "worker failed (worker killed); training it here" in caplog.text
-    np.testing.assert_array_equal(here.predict(uv), lost.predict(uv))
+        failed = AdaptiveMLP(**params).search(uv, xyz).finish(pool, n_workers=2)
+    assert said in caplog.text
+    np.testing.assert_array_equal(here.predict(uv), failed.predict(uv))
 
 
 @pytest.mark.parametrize("layers", [(4,), (5, 3)])

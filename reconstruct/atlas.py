@@ -36,6 +36,7 @@ import warnings
 from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import wait as wait_for
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import trimesh
@@ -78,6 +79,18 @@ REMESH_THREADS = 2
 #: sides). A closed join closes such gaps itself, and the samples only add noise there
 #: (figurine 20k seed 0: Chamfer 0.159 → 0.168).
 STRETCHED = 2.0
+
+
+class _Begun(NamedTuple):
+    """What `AtlasReconstructor.warm` / `start` began: the points and their charted subset
+    (None when only warmed), the worker pool, the decomposition's future (None when only
+    warmed) and the workers' torch imports (one future each)."""
+
+    points: object
+    charted: object
+    workers: object
+    decomposition: object
+    warming: list
 
 
 class AtlasReconstructor(BaseEstimator):
@@ -173,8 +186,8 @@ class AtlasReconstructor(BaseEstimator):
         self.cancel()
         workers = chart_workers(self.n_jobs, warm=False)
         if workers is not None:
-            self._started = (None, None, workers, None, warm_up(workers,
-                                                                 n_chart_workers(self.n_jobs)))
+            self._started = _Begun(None, None, workers, None,
+                                   warm_up(workers, n_chart_workers(self.n_jobs)))
         return self
 
     def start(self, points) -> AtlasReconstructor:
@@ -188,8 +201,8 @@ class AtlasReconstructor(BaseEstimator):
         searches one chart's net, which decides whether the atlas is needed."""
         charted = self._charted(check_points(points))
         started = self.__dict__.get("_started")
-        if started is not None and started[0] is None:  # warmed (`warm`): not begun on a cloud
-            workers, warming = started[2], started[4]
+        if started is not None and started.points is None:  # warmed: not begun on a cloud
+            workers, warming = started.workers, started.warming
         else:
             self.cancel()
             workers, warming = chart_workers(self.n_jobs, warm=False), None
@@ -198,7 +211,7 @@ class AtlasReconstructor(BaseEstimator):
         decomposition = workers.submit(self._decomposition().fit, charted)
         if warming is None:  # after the decomposition, which needs no torch
             warming = warm_up(workers, n_chart_workers(self.n_jobs))
-        self._started = (points, charted, workers, decomposition, warming)
+        self._started = _Begun(points, charted, workers, decomposition, warming)
         return self
 
     def idle_workers(self) -> tuple:
@@ -208,13 +221,13 @@ class AtlasReconstructor(BaseEstimator):
         started = self.__dict__.get("_started")
         if started is None or not all(  # done, and well: a failed import says the pool is not
                 f.done() and not f.cancelled() and f.exception() is None
-                for f in (started[3], *started[4]) if f is not None):
+                for f in (started.decomposition, *started.warming) if f is not None):
             return None, 0
-        return started[2], len(started[4])  # one import per worker
+        return started.workers, len(started.warming)  # one import per worker
 
     def cancel(self) -> None:
         """Drop what `warm` or `start` began: wait for a decomposition, then stop the workers
-        in their torch import (waiting for the import cost a 20k sphere cap's one-chart fit 2.2 s).
+        in their torch import (waiting for it cost a 20k sphere cap's one-chart fit 2.2 s).
         Loky's `kill_workers` earlier than that left a worker blocked sending its result, or
         its manager thread raised on an item not yet dispatched."""
         started = self.__dict__.pop("_started", None)

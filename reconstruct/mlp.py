@@ -496,18 +496,18 @@ class AdaptiveMLP(BaseEstimator):
                 break
         if elsewhere:
             log.info("%d of %d final fits in worker processes", len(elsewhere), len(runs))
-        trained = {}
-        for i, (start, _, run) in enumerate(runs):
-            if i not in elsewhere:
-                trained[i] = start, self._train(start, run, self.final_epochs,
-                                                self.final_patience)
+
+        def here(i):  # (net, record) of run i trained in this process
+            return runs[i][0], self._train(runs[i][0], runs[i][2], self.final_epochs,
+                                           self.final_patience)
+
+        trained = {i: here(i) for i in range(len(runs)) if i not in elsewhere}
         for i, future in elsewhere.items():
             try:
                 trained[i] = future.result()
             except Exception as exc:  # a worker lost (killed, out of memory): train it here
                 log.warning("a final fit's worker failed (%s); training it here", one_line(exc))
-                trained[i] = runs[i][0], self._train(runs[i][0], runs[i][2], self.final_epochs,
-                                                     self.final_patience)
+                trained[i] = here(i)
         candidates = []
         for i, (_, label, _) in enumerate(runs):
             start, record = trained[i]

@@ -17,6 +17,14 @@ def pytest_addoption(parser):
     parser.addoption("--runslow", action="store_true", help="also run tests marked slow")
 
 
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_auto_num_workers(config) -> int:
+    """``-n auto`` (`.ci/run`): one worker per core this process may use, at most 4 (a worker
+    holds about 1.2 GB, and tests start processes of their own)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, min(4, cores or 1))
+
+
 def pytest_collection_modifyitems(config, items):
     if config.getoption("--runslow"):
         return

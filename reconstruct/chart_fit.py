@@ -60,6 +60,8 @@ def fit_chart(points, lam: float, depth: int, random_state, n_neighbors: int | N
         params.update(mlp=AdaptiveMLP(
             hidden_layers=hidden_layers, final_starts=CHART_FINAL_STARTS,
             random_state=random_state))
+    else:  # the first chart's search, as a one-chart fit's but without its weight decay
+        params.update(mlp=AdaptiveMLP(random_state=random_state))
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ReconstructionWarning)

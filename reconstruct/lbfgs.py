@@ -87,8 +87,9 @@ class ProjectedMLP:
             offset += (a + 1) * b
         return out
 
-    def loss_and_gradient(self, x, y):
-        """f(theta) → (MSE on (x, y) plus the ridge term, its gradient); x (n, n_in), y
+    def loss_and_gradient(self, x, y, decay: float = 0.0):
+        """f(theta) → (MSE on (x, y) plus the ridge term, plus ``decay`` times the sum of the
+        hidden layers' squared weights (not their biases), its gradient); x (n, n_in), y
         (n, n_out) arrays or tensors.
 
         Each layer's input keeps a ones column in a buffer of its own, so one product gives its
@@ -127,6 +128,8 @@ class ProjectedMLP:
                 residual = a @ out - y
                 value = (float(np.vdot(residual, residual)) + ridge * float(np.vdot(out, out)))
                 value *= scale
+                if decay:
+                    value += decay * sum(float(np.vdot(p[:-1], p[:-1])) for p in params)
             if not np.isfinite(value):
                 return np.inf, np.zeros_like(theta)
             self.cached = (theta.copy(), out)
@@ -138,6 +141,8 @@ class ProjectedMLP:
                 else:
                     delta *= self.derivative(zs[i], h)
                 np.matmul(inputs[i].T, delta, out=gradients[i])
+                if decay:
+                    gradients[i][:-1] += (2.0 * decay) * params[i][:-1]
                 if i:
                     delta = delta @ params[i][:-1].T
             return value, gradient.astype(np.float64)
@@ -176,8 +181,9 @@ class ProjectedMLP:
 
 
 def train_lbfgs(net, train, validation, max_epochs: int, steps_per_epoch: int,
-                patience: int) -> tuple[float, int]:
-    """Train ``net`` in place on ``train`` = (x, y) tensors; one epoch is ``steps_per_epoch``
+                patience: int, decay: float = 0.0) -> tuple[float, int]:
+    """Train ``net`` in place on ``train`` = (x, y) tensors (``decay``: weight decay of the
+    hidden weights, `ProjectedMLP.loss_and_gradient`); one epoch is ``steps_per_epoch``
     iterations (curvature history kept across epochs). After each epoch the validation MSE is
     checked; training stops after ``patience`` epochs without an improvement of ``MIN_GAIN``
     (relative), and the net is left at its best validation weights. Returns (best validation
@@ -211,7 +217,7 @@ def train_lbfgs(net, train, validation, max_epochs: int, steps_per_epoch: int,
             raise StopIteration
 
     result = minimize(
-        flat.loss_and_gradient(x, y), start, jac=True, method="L-BFGS-B",
+        flat.loss_and_gradient(x, y, decay), start, jac=True, method="L-BFGS-B",
         callback=end_of_iteration,
         options={"maxiter": max_epochs * steps_per_epoch,
                  "maxfun": max_epochs * steps_per_epoch * 5 // 4,

@@ -60,6 +60,9 @@ SPLIT = (0.85, 0.10, 0.05)  # train, test, validation (the paper's)
 # surface: averaging it in cost up to 1.5× the Chamfer distance of the better fit alone
 # (S-curve, 1,600 points, seeds 1 and 2), and a stalled fresh fit (7× the error) wrecked a mesh.
 MEAN_GUARD = 1.05
+#: Training samples at which the final fits' weight decay is ``weight_decay`` times the searched
+#: net's training MSE (a 1,600-point cloud's 85 %); it falls as the square of their number.
+DECAY_SAMPLES = 1360
 
 
 class AdaptiveMLP(BaseEstimator):
@@ -119,6 +122,12 @@ class AdaptiveMLP(BaseEstimator):
     final_starts : fresh starts of the chosen configuration trained beside its searched weights
         (2: measured on bench/quality.py, the mean of three fits has a lower Chamfer-L1 than
         the mean of two, e.g. saddle 20,000 points σ 0.5 %: 0.00098 against 0.00115).
+    weight_decay : the final fits after a search add to their loss the sum of their hidden
+        weights' squares times ``weight_decay`` × the searched net's training MSE ×
+        (`DECAY_SAMPLES` / their training samples)²: a net fitted to few noisy samples
+        follows the noise, one fitted to many needs no prior (20,000 points train on 6,000
+        each: 5 % of the 1,600-point decay). `SurfaceReconstructor` sets it; 0: none. Not
+        applied when ``hidden_layers`` is given (no searched net to scale it by).
     max_search_points : the search trains each configuration on a random subset of at most this
         many of them (enough to rank configurations; the chosen one then trains on all): at
         20,000 points it cuts the search by about a third.
@@ -158,6 +167,7 @@ class AdaptiveMLP(BaseEstimator):
         max_search_points: int = 4000,
         final_fit: str = "mean",
         final_starts: int = 2,
+        weight_decay: float = 0.0,
         random_state: int | None = 0,
         hidden_layers: tuple[int, ...] | None = None,
     ):
@@ -180,6 +190,7 @@ class AdaptiveMLP(BaseEstimator):
         self.max_search_points = max_search_points
         self.final_fit = final_fit
         self.final_starts = final_starts
+        self.weight_decay = weight_decay
         self.random_state = random_state
         self.hidden_layers = hidden_layers
 
@@ -203,6 +214,8 @@ class AdaptiveMLP(BaseEstimator):
             raise InvalidInputError(f"retry_factor must be > 1, got {self.retry_factor}")
         if not self.near_best >= 0.0:
             raise InvalidInputError(f"near_best must be >= 0, got {self.near_best}")
+        if not (np.isfinite(self.weight_decay) and self.weight_decay >= 0.0):
+            raise InvalidInputError(f"weight_decay must be >= 0, got {self.weight_decay}")
         if not 0.0 <= self.test_weight <= 1.0:
             raise InvalidInputError(f"test_weight must be in [0, 1], got {self.test_weight}")
         if self.hidden_layers is not None and not (
@@ -441,7 +454,7 @@ class AdaptiveMLP(BaseEstimator):
         return net, record
 
     def _train(self, net, tensors, max_epochs: int | None = None,
-               patience: int | None = None) -> dict:
+               patience: int | None = None, decay: float = 0.0) -> dict:
         """Full-batch L-BFGS (`lbfgs.train_lbfgs`) with early stopping on validation; the net
         keeps its best weights. Returns the record of the run."""
         started = time.perf_counter()
@@ -449,6 +462,7 @@ class AdaptiveMLP(BaseEstimator):
             net, tensors["train"], tensors["validation"],
             max_epochs=int(max_epochs or self.max_epochs),
             steps_per_epoch=int(self.steps_per_epoch), patience=int(patience or self.patience),
+            decay=decay,
         )
         train, test = mse(net, *tensors["train"]), mse(net, *tensors["test"])
         return {
@@ -485,12 +499,14 @@ class AdaptiveMLP(BaseEstimator):
         runs = [(start, label, {"train": tensors["bags"][i % len(tensors["bags"])],
                                 "validation": held_out, "test": tensors["test"]})
                 for i, (start, label) in enumerate(starts)]  # each its own share of a large cloud
+        decays = self._final_decays(net, runs)
         fresh = [i for i, (_, label, _) in enumerate(runs) if label == "fresh"]
         elsewhere = {}
         for i in fresh[:n_workers] if executor is not None else ():
             try:
                 elsewhere[i] = executor.submit(_train_elsewhere, clone(self), runs[i][0],
-                                               runs[i][2], self.final_epochs, self.final_patience)
+                                               runs[i][2], self.final_epochs, self.final_patience,
+                                               decays[i])
             except Exception as exc:  # a broken pool (a worker lost while idle): train here
                 log.warning("final fits' workers unavailable (%s); training here", one_line(exc))
                 break
@@ -499,7 +515,7 @@ class AdaptiveMLP(BaseEstimator):
 
         def here(i):  # (net, record) of run i trained in this process
             return runs[i][0], self._train(runs[i][0], runs[i][2], self.final_epochs,
-                                           self.final_patience)
+                                           self.final_patience, decays[i])
 
         trained = {i: here(i) for i in range(len(runs)) if i not in elsewhere}
         for i, future in elsewhere.items():
@@ -520,6 +536,13 @@ class AdaptiveMLP(BaseEstimator):
             return best[2]
         kept = [c[2] for c in candidates if c[0] <= MEAN_GUARD * best[0]]  # others stalled
         return kept[0] if len(kept) == 1 else mean_of(*kept)
+
+    def _final_decays(self, searched, runs) -> list[float]:
+        """Each final run's weight decay (``weight_decay``): none without a search."""
+        if not self.weight_decay or self.hidden_layers is not None:
+            return [0.0] * len(runs)
+        scale = self.weight_decay * mse(searched, *runs[0][2]["train"])  # before it trains on
+        return [scale * (DECAY_SAMPLES / len(run["train"][0])) ** 2 for _, _, run in runs]
 
     def _retrain(self, net, tensors, generator):
         """A fresh net of the chosen configuration trained on every sample (the paper's option)."""
@@ -545,9 +568,10 @@ class AdaptiveMLP(BaseEstimator):
                          self.y_scale_)
 
 
-def _train_elsewhere(estimator: AdaptiveMLP, net, tensors, max_epochs: int, patience: int):
+def _train_elsewhere(estimator: AdaptiveMLP, net, tensors, max_epochs: int, patience: int,
+                     decay: float = 0.0):
     """`AdaptiveMLP._train` of ``net`` in a worker process (``estimator``: an unfitted clone
     with the fit's parameters); returns (the trained net, its record)."""
     with one_torch_thread():
-        record = estimator._train(net, tensors, max_epochs, patience)
+        record = estimator._train(net, tensors, max_epochs, patience, decay)
     return net, record

@@ -18,12 +18,13 @@ def samples(n=300, seed=0):
 
 @pytest.mark.parametrize("activation", ACTIVATIONS)
 @pytest.mark.parametrize("layers", [(4,), (3, 5)])
-def test_gradient_matches_central_differences(activation, layers):
+@pytest.mark.parametrize("decay", [0.0, 0.01])
+def test_gradient_matches_central_differences(activation, layers, decay):
     x, y = samples()
     net = build(layers, activation, 2, 3, torch.Generator().manual_seed(1))
     flat = ProjectedMLP(net, dtype="float64")
     theta = flat.theta()
-    evaluate = flat.loss_and_gradient(x, y)
+    evaluate = flat.loss_and_gradient(x, y, decay)
     _, gradient = evaluate(theta)
     numeric = np.empty_like(theta)
     for i in range(len(theta)):
@@ -67,3 +68,14 @@ def test_training_lowers_the_error_and_keeps_the_best_validation_weights():
     assert best == pytest.approx(mse(net, *validation), rel=1e-12)  # left at its best weights
     assert best < 0.2 * before
     assert 1 <= epochs <= 30
+
+
+def test_weight_decay_adds_the_hidden_weights_squares_not_their_biases():
+    x, y = samples()
+    net = build((3, 5), "tanh", 2, 3, torch.Generator().manual_seed(4))
+    flat = ProjectedMLP(net, dtype="float64")
+    theta = flat.theta()
+    plain, _ = flat.loss_and_gradient(x, y)(theta)
+    decayed, _ = flat.loss_and_gradient(x, y, 0.5)(theta)
+    weights = sum(float((layer.weight ** 2).sum()) for layer in flat.hidden)
+    assert decayed - plain == pytest.approx(0.5 * weights, rel=1e-12)

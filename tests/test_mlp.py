@@ -226,10 +226,10 @@ def test_each_final_fit_trains_on_its_own_bag(monkeypatch):
 
     train, rows = mlp_module.AdaptiveMLP._train, []
 
-    def spy(self, net, tensors, max_epochs=None, patience=None):
+    def spy(self, net, tensors, max_epochs=None, patience=None, decay=0.0):
         if max_epochs == self.final_epochs:
             rows.append({tuple(r) for r in tensors["train"][0].numpy()})
-        return train(self, net, tensors, max_epochs, patience)
+        return train(self, net, tensors, max_epochs, patience, decay)
 
     monkeypatch.setattr(mlp_module.AdaptiveMLP, "_train", spy)
     uv, xyz = paraboloid(1000)
@@ -328,8 +328,9 @@ def test_the_mean_is_kept_only_while_the_final_fits_agree(monkeypatch, fresh_fac
 
     train = mlp_module.AdaptiveMLP._train
 
-    def train_with_a_worse_fresh_fit(self, net, tensors, max_epochs=None, patience=None):
-        record = train(self, net, tensors, max_epochs, patience)
+    def train_with_a_worse_fresh_fit(self, net, tensors, max_epochs=None, patience=None,
+                                     decay=0.0):
+        record = train(self, net, tensors, max_epochs, patience, decay)
         if max_epochs == self.final_epochs:
             self._finals = getattr(self, "_finals", 0) + 1
             if self._finals == 1:
@@ -353,8 +354,9 @@ def scripted_search(monkeypatch, scores):
     train = mlp_module.AdaptiveMLP._train
     starts = {}
 
-    def train_scripted(self, net, tensors, max_epochs=None, patience=None):
-        record = train(self, net, tensors, 2 if max_epochs is None else max_epochs, patience)
+    def train_scripted(self, net, tensors, max_epochs=None, patience=None, decay=0.0):
+        record = train(self, net, tensors, 2 if max_epochs is None else max_epochs, patience,
+                       decay)
         if max_epochs is None:  # a searched configuration
             layers = tuple(m.out_features for m in net if hasattr(m, "out_features"))[:-1]
             run = starts[layers] = starts.get(layers, -1) + 1
@@ -431,3 +433,42 @@ def test_training_does_not_import_torch_dynamo():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def _hidden_weight_squares(model) -> float:
+    from reconstruct.networks import linears
+
+    return sum(float((layer.weight ** 2).sum()) for layer in linears(model.torch_model_)[:-1])
+
+
+def test_weight_decay_shrinks_the_searched_final_fits_and_nothing_else():
+    uv, xyz = paraboloid(400, sigma=0.05)
+    plain = AdaptiveMLP(random_state=0, **SMALL).fit(uv, xyz)
+    decayed = AdaptiveMLP(random_state=0, weight_decay=1.0, **SMALL).fit(uv, xyz)
+    assert decayed.hidden_layers_ == plain.hidden_layers_  # the search does not see it
+    searched = [r for r in plain.history_ if "final" not in r]
+    assert [r["train_mse"] for r in searched] == [
+        r["train_mse"] for r in decayed.history_ if "final" not in r]
+    assert _hidden_weight_squares(decayed) < _hidden_weight_squares(plain)
+    # given layers: no searched net to scale it by, so the same net
+    given = dict(hidden_layers=(4,), final_epochs=20, random_state=0)
+    np.testing.assert_array_equal(AdaptiveMLP(**given).fit(uv, xyz).predict(uv),
+                                  AdaptiveMLP(weight_decay=1.0, **given).fit(uv, xyz).predict(uv))
+
+
+@pytest.mark.parametrize("decay", [-0.1, float("nan")])
+def test_a_negative_or_nan_weight_decay_is_refused(decay):
+    uv, xyz = paraboloid(100)
+    with pytest.raises(InvalidInputError, match="weight_decay"):
+        AdaptiveMLP(weight_decay=decay, **SMALL).fit(uv, xyz)
+
+
+def test_a_worker_trains_its_final_fit_with_the_same_weight_decay():
+    from joblib.externals.loky import ProcessPoolExecutor
+
+    uv, xyz = paraboloid(400, sigma=0.05)
+    params = dict(random_state=0, weight_decay=1.0, **SMALL)
+    here = AdaptiveMLP(**params).fit(uv, xyz)
+    with ProcessPoolExecutor(max_workers=1) as pool:
+        elsewhere = AdaptiveMLP(**params).search(uv, xyz).finish(pool, n_workers=1)
+    np.testing.assert_array_equal(here.predict(uv), elsewhere.predict(uv))

@@ -72,7 +72,8 @@ ATLAS_FORMAT = "scanstation-atlas/1"
 _FIT_ONLY_PARAMS = ("graph", "n_jobs", "hidden_layers", "n_neighbors")
 
 #: Charts re-meshed at once, in threads (ONNX Runtime, GEOS and qhull release the GIL): torus
-#: 22k, 37 charts, 2 cores: 266 -> 187 ms.
+#: 22k, 37 charts, 2 cores: 266 -> 187 ms when measured; 280 -> 265 ms on a slower day
+#: (2026-12-04), when most of a chart's 7.7 ms held the GIL (Python and small numpy calls).
 REMESH_THREADS = 2
 #: In an open join, a chart's faces with an edge this many times longer than its median edge
 #: are filled with samples (`join.stretched_samples`; its grid's diagonals are 1.4 times its

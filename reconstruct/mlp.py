@@ -61,8 +61,12 @@ SPLIT = (0.85, 0.10, 0.05)  # train, test, validation (the paper's)
 # (S-curve, 1,600 points, seeds 1 and 2), and a stalled fresh fit (7× the error) wrecked a mesh.
 MEAN_GUARD = 1.05
 #: Training samples at which the final fits' weight decay is ``weight_decay`` times the searched
-#: net's training MSE (a 1,600-point cloud's 85 %); it falls as the square of their number.
+#: net's training MSE (a 1,600-point cloud's 85 %); it falls as the square of their number, and
+#: a fit on more than ``DECAY_UP_TO`` samples has none: at 20,000 points (6,000 samples a fit,
+#: 5 % of the 1,600-point decay) bench.quality's seeds 0-2 against none gave a geometric mean of
+#: 0.989 but the S-curve at σ 0.5 % 1.15 worse at every seed (bench.compare_quality).
 DECAY_SAMPLES = 1360
+DECAY_UP_TO = 2 * DECAY_SAMPLES
 
 
 class AdaptiveMLP(BaseEstimator):
@@ -124,10 +128,10 @@ class AdaptiveMLP(BaseEstimator):
         the mean of two, e.g. saddle 20,000 points σ 0.5 %: 0.00098 against 0.00115).
     weight_decay : the final fits after a search add to their loss the sum of their hidden
         weights' squares times ``weight_decay`` × the searched net's training MSE ×
-        (`DECAY_SAMPLES` / their training samples)²: a net fitted to few noisy samples
-        follows the noise, one fitted to many needs no prior (20,000 points train on 6,000
-        each: 5 % of the 1,600-point decay). `SurfaceReconstructor` sets it; 0: none. Not
-        applied when ``hidden_layers`` is given (no searched net to scale it by).
+        (`DECAY_SAMPLES` / their training samples)², none beyond `DECAY_UP_TO` samples: a net
+        fitted to few noisy samples follows the noise, one fitted to many needs no prior.
+        `SurfaceReconstructor` sets it; 0: none. Not applied when ``hidden_layers`` is given
+        (no searched net to scale it by).
     max_search_points : the search trains each configuration on a random subset of at most this
         many of them (enough to rank configurations; the chosen one then trains on all): at
         20,000 points it cuts the search by about a third.
@@ -542,7 +546,8 @@ class AdaptiveMLP(BaseEstimator):
         if not self.weight_decay or self.hidden_layers is not None:
             return [0.0] * len(runs)
         scale = self.weight_decay * mse(searched, *runs[0][2]["train"])  # before it trains on
-        return [scale * (DECAY_SAMPLES / len(run["train"][0])) ** 2 for _, _, run in runs]
+        sizes = [len(run["train"][0]) for _, _, run in runs]
+        return [scale * (DECAY_SAMPLES / n) ** 2 if n <= DECAY_UP_TO else 0.0 for n in sizes]
 
     def _retrain(self, net, tensors, generator):
         """A fresh net of the chosen configuration trained on every sample (the paper's option)."""

@@ -72,8 +72,8 @@ SPECULATE_FROM = 10000
 #: `AdaptiveMLP.weight_decay` of a one-chart fit's final fits. bench.quality at 1,600 points,
 #: seeds 0-5 against the search before issue 17 (bench.compare_quality: geometric mean of the
 #: paired Chamfer-L1 ratios): 0.952 without, cases over 2 % worse 6 of 14; 0.921 with 0.01,
-#: 1 of 14 (the dense cone at σ 1 %, 1.028); at 20,000 points (seed 0) 0.748 with or without,
-#: none worse. An atlas's charts train without it (not measured there).
+#: 1 of 14 (the dense cone at σ 1 %, 1.028). Clouds of more than about 3,200 points train
+#: without it (`mlp.DECAY_UP_TO`), as do an atlas's charts (not measured there).
 FINAL_WEIGHT_DECAY = 0.01
 _MESH_PARAMS = ("lam", "depth", "n_corners", "boundary", "grid_spacing", "variance", "extend")
 #: Training-only parameters: not saved (a loaded reconstruction re-meshes, it does not train).

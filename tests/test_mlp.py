@@ -472,3 +472,11 @@ def test_a_worker_trains_its_final_fit_with_the_same_weight_decay():
     with ProcessPoolExecutor(max_workers=1) as pool:
         elsewhere = AdaptiveMLP(**params).search(uv, xyz).finish(pool, n_workers=1)
     np.testing.assert_array_equal(here.predict(uv), elsewhere.predict(uv))
+
+
+def test_a_fit_on_more_samples_than_decay_up_to_trains_without_decay(monkeypatch):
+    uv, xyz = paraboloid(400, sigma=0.05)
+    monkeypatch.setattr("reconstruct.mlp.DECAY_UP_TO", 100)  # 340 training samples here
+    plain = AdaptiveMLP(random_state=0, **SMALL).fit(uv, xyz)
+    decayed = AdaptiveMLP(random_state=0, weight_decay=1.0, **SMALL).fit(uv, xyz)
+    np.testing.assert_array_equal(plain.predict(uv), decayed.predict(uv))

@@ -4,6 +4,7 @@ import os
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+import logging  # noqa: E402
 import threading  # noqa: E402
 import time  # noqa: E402
 
@@ -15,6 +16,11 @@ from capture.plan import ReconstructionParams  # noqa: E402
 
 def pytest_addoption(parser):
     parser.addoption("--runslow", action="store_true", help="also run tests marked slow")
+
+
+# Dask's client threads may log after a test ends, into a stream pytest's capture has closed:
+# under xdist each such record printed a "--- Logging error ---" traceback into the log.
+logging.raiseExceptions = False
 
 
 @pytest.hookimpl(optionalhook=True)

@@ -23,7 +23,7 @@ and the mean of those that agree is kept (one MLP with them side by side). That 
 as ONNX with its normalisation inside (`onnx_writer`); `predict` and meshing run on
 onnxruntime.
 
-About 560 lines: the search and its final fits share the samples, the random streams and the
+About 580 lines: the search and its final fits share the samples, the random streams and the
 stored errors, so they stay one estimator (the nets and their training loop are apart).
 """
 
@@ -542,7 +542,8 @@ class AdaptiveMLP(BaseEstimator):
         return kept[0] if len(kept) == 1 else mean_of(*kept)
 
     def _final_decays(self, searched, runs) -> list[float]:
-        """Each final run's weight decay (``weight_decay``): none without a search."""
+        """Each final run's weight decay (``weight_decay``, scaled by the searched net's
+        training MSE and its samples): none without a search or beyond `DECAY_UP_TO`."""
         if not self.weight_decay or self.hidden_layers is not None:
             return [0.0] * len(runs)
         scale = self.weight_decay * mse(searched, *runs[0][2]["train"])  # before it trains on

@@ -13,14 +13,13 @@ from scan_helpers import FAST_PARAMS  # noqa: E402
 
 from capture.plan import ReconstructionParams  # noqa: E402
 
-
-def pytest_addoption(parser):
-    parser.addoption("--runslow", action="store_true", help="also run tests marked slow")
-
-
 # Dask's client threads may log after a test ends, into a stream pytest's capture has closed:
 # under xdist each such record printed a "--- Logging error ---" traceback into the log.
 logging.raiseExceptions = False
+
+
+def pytest_addoption(parser):
+    parser.addoption("--runslow", action="store_true", help="also run tests marked slow")
 
 
 @pytest.hookimpl(optionalhook=True)

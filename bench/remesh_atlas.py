@@ -6,8 +6,9 @@ on the same cloud (issue 13: a 50k-vertex atlas mesh re-meshes in ≤ 300 ms).
 Fits `AtlasReconstructor` to a closed awkward object (σ 0.5 % of the diagonal), states the mesh's
 vertex count, then re-meshes it through the charts' ONNX maps with several λ and a depth change
 and prints each re-mesh's time (wall, and CPU time of this process: the machine may be
-shared), split into the charts' re-meshing and the join (wall), with how many join samples
-moved and how many grid nodes were re-evaluated; then the median re-mesh time against the fit
+shared), split into the charts' re-meshing (with how many charts it meshed) and the join (wall),
+with how many join samples moved and how many grid nodes were re-evaluated; then the median
+re-mesh time against the fit
 and against Poisson, how many are within the target and the slowest; then the same after a
 save → load in this process (a loaded closed atlas evaluates the join's grid afresh the first
 time its samples move).
@@ -47,18 +48,19 @@ def timed_remesh(atlas: AtlasReconstructor, change: dict) -> dict:
     seconds = time.perf_counter() - started
     return {"change": change, "seconds": seconds, "cpu": time.process_time() - cpu,
             "charts": atlas.timings_["remesh charts"], "join": atlas.timings_["join"],
-            "moved": atlas._sdf.n_changed_, "samples": len(atlas.samples_),
-            "nodes": atlas._sdf.n_evaluated_, "vertices": len(mesh.vertices),
+            "meshed": atlas.remesh_counts_["charts meshed"],
+            "moved": atlas.remesh_counts_["samples moved"], "samples": len(atlas.samples_),
+            "nodes": atlas.remesh_counts_["nodes evaluated"], "vertices": len(mesh.vertices),
             "watertight": bool(mesh.is_watertight)}
 
 
 def print_rows(rows: list[dict]) -> None:
-    print(f"{'re-mesh with':22s} {'ms':>7s} {'cpu ms':>7s} {'charts':>7s} {'join':>7s} "
-          f"{'moved':>12s} {'nodes':>8s} {'vertices':>9s} {'closed':>6s}")
+    print(f"{'re-mesh with':22s} {'ms':>7s} {'cpu ms':>7s} {'charts':>7s} {'meshed':>6s} "
+          f"{'join':>7s} {'moved':>12s} {'nodes':>8s} {'vertices':>9s} {'closed':>6s}")
     for r in rows:
         change = ", ".join(f"{k}={v}" for k, v in r["change"].items())
         print(f"{change or '(as saved)':22s} {1000 * r['seconds']:7.0f} {1000 * r['cpu']:7.0f} "
-              f"{1000 * r['charts']:7.0f} "
+              f"{1000 * r['charts']:7.0f} {r['meshed']:6d} "
               f"{1000 * r['join']:7.0f} {r['moved']:5d}/{r['samples']:<6d} {r['nodes']:8d} "
               f"{r['vertices']:9d} {str(r['watertight']):>6s}")
 

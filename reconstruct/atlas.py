@@ -43,6 +43,7 @@ import trimesh
 from sklearn.base import BaseEstimator
 
 from .chart_fit import chart_workers, fit_charts, n_chart_workers, warm_up
+from .chart_parts import ChartPart, chart_part, unchanged
 from .chart_sides import ChartSides, uncharted_points
 from .charts import ChartDecomposition
 from .closed_grid import ClosedSDF
@@ -146,7 +147,8 @@ class AtlasReconstructor(BaseEstimator):
     (c,) charts joined as thin shells, ``thin_`` (c,) those of them charted on one face of a thin
     part (`reconstruct.chart_sides`), ``closed_``
     whether the cloud was joined as the boundary of a volume (then a mesh that is not
-    watertight is warned about).
+    watertight is warned about); after a `remesh`, ``remesh_counts_``: charts meshed, join
+    samples moved, grid nodes evaluated.
     """
 
     def __init__(self, chart_size: int = 2500, overlap: float = 4.0, lam: float = 1.0,
@@ -271,7 +273,8 @@ class AtlasReconstructor(BaseEstimator):
         self.charts_ = [fitted[i][0] for i in order]
         self.chart_points_ = [fitted[i][1] for i in order]
         self._chart_ids = order
-        self.__dict__.pop("_owners", None)
+        for name in ("_owners", "_parts"):
+            self.__dict__.pop(name, None)
         self.timings_["fits"] = time.perf_counter() - started - self.timings_["charts"]
         self.signs_ = orient_charts([c.mesh_ for c in self.charts_], self.chart_points_, points)
         self._join()
@@ -346,19 +349,16 @@ class AtlasReconstructor(BaseEstimator):
             params.update(n_neighbors=first.n_neighbors_, hidden_layers=first.hidden_layers_)
         return fit_charts(clouds, workers, **params)
 
-    def _join(self, decide: bool = True) -> None:
-        """Join the charts' meshes into ``mesh_``. ``decide``: find again which side of each
-        chart is outside and whether the cloud is closed (`fit`); `remesh` keeps the fit's."""
+    def _join(self, decide: bool = True, fresh=None) -> None:
+        """Join the charts' parts into ``mesh_``. ``decide``: find again which side of each
+        chart is outside and whether the cloud is closed (`fit`); `remesh` keeps the fit's.
+        ``fresh`` (c,) bool: the charts meshed anew (None: all), whose parts are taken again."""
         started = time.perf_counter()
-        meshes = [c.mesh_ for c in self.charts_]
-        if "_owners" not in self.__dict__:  # kept for re-meshing (a fit drops it)
-            self._owners = self._chart_owners()
-        labels, tree = self._owners
-        reach = self.reach * self.decomposition_.spacing_
-        kept = chart_samples(meshes, labels, self.points_, reach=reach, tree=tree)
+        parts = self._chart_parts(fresh)
         voxel = self.voxel * self.decomposition_.spacing_
-        chart_samples_ = [m.vertices[k] for m, k in zip(meshes, kept, strict=True)]
-        unturned = vertex_normals(meshes, kept)
+        reach = self.reach * self.decomposition_.spacing_
+        chart_samples_ = [part.samples for part in parts]
+        unturned = [part.normals for part in parts]
         chart_normals = [s * n for n, s in zip(unturned, self.signs_, strict=True)]
         if decide or not hasattr(self, "shells_"):
             sides = ChartSides(band=self.band, closed=self.closed).fit(
@@ -374,7 +374,7 @@ class AtlasReconstructor(BaseEstimator):
             chart_normals = [np.where(probe.facing_in(s, n)[:, None], -n, n)
                              for s, n in zip(chart_samples_, chart_normals, strict=True)]
         else:  # an open join trims its mesh to its samples: no slits
-            self._fill_stretched(meshes, kept, unturned, chart_samples_, chart_normals, reach)
+            self._fill_stretched(parts, chart_samples_, chart_normals, reach)
         samples, normals, kept_open = [], [], []
         for s, n, shell, far_face in zip(chart_samples_, chart_normals, self.shells_,
                                          self.thin_, strict=True):
@@ -397,6 +397,7 @@ class AtlasReconstructor(BaseEstimator):
         if not self.closed_ and self.up is not None:
             self._face_seen_side()
         self.samples_, self.normals_ = samples, normals
+        self._joined_up = self._up_key()
         if decide or not (self._sdf.hit_ and hasattr(self, "euler_")):  # else the same mesh
             self.watertight_, self.winding_consistent_, self.euler_ = topology(self.mesh_.faces)
         if self.closed_ and not self.watertight_:
@@ -427,19 +428,57 @@ class AtlasReconstructor(BaseEstimator):
         if not kept[1]:
             turn_faces(self.mesh_)
 
-    def _fill_stretched(self, meshes, kept, unturned, chart_samples_, chart_normals, reach):
+    def _chart_parts(self, fresh=None) -> list[ChartPart]:
+        """Each chart's `ChartPart`: kept from the last join, or taken again from its mesh when
+        it has none or is ``fresh`` ((c,) bool; None: every chart that has a mesh)."""
+        if "_owners" not in self.__dict__:  # kept for re-meshing (a fit drops it)
+            self._owners = self._chart_owners()
+        labels, tree = self._owners
+        parts = self.__dict__.get("_parts")
+        if parts is None or len(parts) != len(self.charts_):
+            parts = [None] * len(self.charts_)
+        todo = [i for i, (chart, part) in enumerate(zip(self.charts_, parts, strict=True))
+                if part is None or (fresh[i] if fresh is not None else "mesh_" in vars(chart))]
+        if todo:
+            charts = [self.charts_[i] for i in todo]
+            meshes = [self._chart_mesh(i) for i in todo]
+            kept = chart_samples(meshes, labels, self.points_, tree=tree, charts=todo,
+                                 reach=self.reach * self.decomposition_.spacing_)
+            for i, chart, k, normals in zip(todo, charts, kept, vertex_normals(meshes, kept),
+                                            strict=True):
+                parts[i] = chart_part(chart.mesh_.vertices, chart.vertices_2d_, chart.outline_,
+                                      chart.grid_spacing, k, normals)
+        self._parts = parts
+        return parts
+
+    def _chart_mesh(self, index: int) -> trimesh.Trimesh:
+        """Chart ``index``'s mesh, meshed again if a re-mesh skipped it."""
+        chart = self.charts_[index]
+        if "mesh_" not in vars(chart):
+            chart.remesh()
+        return chart.mesh_
+
+    def _fill_stretched(self, parts, chart_samples_, chart_normals, reach):
         """Add to each chart's samples and normals (lists, in place) those on its faces that
         its map stretches (`join.stretched_samples`) lying in its own part of the cloud, as its
-        vertices must."""
-        filled = stretched_samples(meshes, kept, unturned, STRETCHED)
-        if not any(len(extra) for extra, _ in filled):
-            return
-        labels, tree = self._owners
-        mine = owned([extra for extra, _ in filled], labels, tree, reach)
-        for i, ((extra, extra_normals), own) in enumerate(zip(filled, mine, strict=True)):
-            chart_samples_[i] = np.concatenate([chart_samples_[i], extra[own]])
-            chart_normals[i] = np.concatenate([chart_normals[i],
-                                               self.signs_[i] * extra_normals[own]])
+        vertices must; found once per chart mesh (kept in its part)."""
+        todo = [i for i, part in enumerate(parts) if part.extra is None]
+        skipped = [i for i in todo if "mesh_" not in vars(self.charts_[i])]
+        if skipped:  # joined closed since: meshed again, their parts (the same) indexed anew
+            self._chart_parts([i in skipped for i in range(len(parts))])
+        if todo:
+            meshes = [self.charts_[i].mesh_ for i in todo]
+            filled = stretched_samples(meshes, [parts[i].kept for i in todo],
+                                       [parts[i].normals for i in todo], STRETCHED)
+            labels, tree = self._owners
+            mine = owned([extra for extra, _ in filled], labels, tree, reach, charts=todo)
+            for i, (extra, extra_normals), own in zip(todo, filled, mine, strict=True):
+                parts[i].extra, parts[i].extra_normals = extra[own], extra_normals[own]
+        for i, part in enumerate(parts):
+            if len(part.extra):
+                chart_samples_[i] = np.concatenate([chart_samples_[i], part.extra])
+                chart_normals[i] = np.concatenate([chart_normals[i],
+                                                   self.signs_[i] * part.extra_normals])
 
     def _join_grid(self, voxel: float) -> SparseSDF | ClosedSDF:
         """The join's grid kept between re-meshes (`implicit_mesh`): of the closed kind for a
@@ -465,27 +504,63 @@ class AtlasReconstructor(BaseEstimator):
 
         Each chart keeps the grid spacing it was fitted with (`fit` sets its ``grid_spacing``),
         and its grid lies on the lattice of that spacing, so a new outline moves only the
-        vertices near it; the join re-evaluates its grid only round the samples that moved
-        (`SparseSDF.update`, `ClosedSDF.update` when closed) and gives back the same mesh when
-        none of its samples did (an outline change that stays in the charts' overlap rings)."""
+        vertices near it. A chart whose part of the join cannot change with its new outline
+        (`chart_parts.unchanged`: its outline moves in the overlap rings, away from its own part
+        of the cloud) takes the parameters but is not meshed (its ``mesh_`` is dropped); when
+        no chart was, the mesh stands. The join re-evaluates its grid only round the samples
+        that moved (`SparseSDF.update`, `ClosedSDF.update` when closed) and gives back the same
+        mesh when none of its samples did. Torus 22k, 37 charts, 44,600 vertices: a new λ or
+        depth meshes 0-1 charts (the figurine 13-19 of 37; a mug's or an open surface's charts
+        mostly own part of their outlines, and are all meshed)."""
         if not hasattr(self, "charts_"):
             raise NotFittedError("fit() the atlas first")
         started = time.perf_counter()
+        parts = self.__dict__.get("_parts")
+        if parts is not None and len(parts) != len(self.charts_):
+            parts = None
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", ReconstructionWarning)
             with ThreadPoolExecutor(min(REMESH_THREADS, len(self.charts_))) as pool:
-                list(pool.map(lambda chart: chart.remesh(**params), self.charts_))
+                fresh = list(pool.map(lambda i: self._remesh_chart(
+                    i, None if parts is None else parts[i], params), range(len(self.charts_))))
         said = [w for w in caught if issubclass(w.category, ReconstructionWarning)]
         if said:  # one line for the atlas, not one per chart
             warnings.warn(f"{len(said)} of {len(self.charts_)} charts: {said[0].message}",
                           ReconstructionWarning, stacklevel=2)
         self.timings_["remesh charts"] = time.perf_counter() - started
-        self._join(decide=False)
+        if any(fresh) or self.__dict__.get("_joined_up") != self._up_key():
+            self._join(decide=False, fresh=fresh)
+            moved, nodes = self._sdf.n_changed_, self._sdf.n_evaluated_
+        else:  # every chart's part as it was: the same samples, the same mesh
+            self.timings_["join"], moved, nodes = 0.0, 0, 0
         self.timings_["remesh"] = time.perf_counter() - started
-        log.info("atlas re-meshed: %d of %d join samples changed, %d nodes evaluated (%.0f ms)",
-                 self._sdf.n_changed_, len(self.samples_), self._sdf.n_evaluated_,
-                 1000 * self.timings_["remesh"])
+        self.remesh_counts_ = {"charts meshed": sum(fresh), "samples moved": moved,
+                               "nodes evaluated": nodes}
+        log.info("atlas re-meshed: %d of %d charts meshed, %d of %d join samples changed, %d "
+                 "nodes evaluated (%.0f ms)", sum(fresh), len(self.charts_), moved,
+                 len(self.samples_), nodes, 1000 * self.timings_["remesh"])
         return self.mesh_
+
+    def _remesh_chart(self, index: int, part: ChartPart | None, params: dict) -> bool:
+        """Re-mesh chart ``index`` with ``params`` unless its ``part`` of the join cannot
+        change (`chart_parts.unchanged`); returns whether it was meshed."""
+        chart = self.charts_[index]
+        if part is None:  # not joined since loaded or fitted: nothing kept to compare with
+            return chart.remesh_unless(None, **params)
+        labels, tree = self._owners
+        reach = self.reach * self.decomposition_.spacing_
+
+        def mine(positions):
+            return owned([positions], labels, tree, reach, charts=[index])[0]
+        return chart.remesh_unless(
+            lambda outline, spacing: unchanged(part, outline, spacing, chart.surface_map_, mine),
+            **params)
+
+    def _up_key(self):
+        """What of ``up`` an open join's mesh depends on (`_face_seen_side`)."""
+        if self.closed_ or self.up is None:
+            return None
+        return tuple(float(x) for x in check_up(self.up))
 
     # -- persistence ---------------------------------------------------------------------------
     def state(self) -> tuple[dict, dict[str, np.ndarray]]:

@@ -85,6 +85,17 @@ def mesh_inside(
     return _drop_unused(vertices, faces)
 
 
+def lattice_nodes(polygon: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """The lattice nodes `mesh_inside` (``lattice=True``) uses inside ``polygon`` (p, 2):
+    ``first`` (2,) int64, the whole-number (x, y) of the corner node, and ``used``
+    (rows, cols) bool, node (row j, column i) at ``(first + (i, j)) · spacing``."""
+    polygon = np.asarray(polygon, dtype=np.float64)
+    if not np.array_equal(polygon[0], polygon[-1]):
+        polygon = np.vstack([polygon, polygon[:1]])
+    lo, index, _, _ = _grid_nodes(polygon, spacing, lattice=True)
+    return np.rint(lo / spacing).astype(np.int64), index >= 0
+
+
 def _grid_nodes(polygon, spacing, lattice=False):
     lo = polygon.min(axis=0)
     first = np.floor(lo / spacing)  # on the lattice: the first node's whole-number coordinates

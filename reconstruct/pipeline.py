@@ -80,6 +80,12 @@ _MESH_PARAMS = ("lam", "depth", "n_corners", "boundary", "grid_spacing", "varian
 _TRAINING_PARAMS = ("mlp", "fine_tune", "warm_tolerance", "atlas")
 
 
+def _check_known(params: dict) -> None:
+    unknown = set(params) - set(_MESH_PARAMS)
+    if unknown:
+        raise InvalidInputError(f"cannot re-mesh with {sorted(unknown)}: not a mesh parameter")
+
+
 class SurfaceReconstructor(BaseEstimator):
     """Reconstruct a triangle mesh from a noisy point cloud (White & Bai; Yumer & Kara).
 
@@ -377,15 +383,23 @@ class SurfaceReconstructor(BaseEstimator):
     def remesh(self, **params) -> trimesh.Trimesh:
         """Re-mesh with new ``lam``, ``depth``, ``n_corners``, ``boundary`` or ``grid_spacing``
         through the stored ONNX map (no retraining). Returns and stores ``mesh_``."""
-        unknown = set(params) - set(_MESH_PARAMS)
-        if unknown:
-            raise InvalidInputError(f"cannot re-mesh with {sorted(unknown)}: not a mesh parameter")
+        _check_known(params)
         if hasattr(self, "atlas_"):
             self._check_mesh_params_given(params)
             self.atlas_.up = self.up  # set_params(up=...) reaches the atlas's open join
             self.mesh_ = self.atlas_.remesh(**params)
             self.set_params(**{k: v for k, v in params.items() if v is not None})
             return self.mesh_
+        self.remesh_unless(None, **params)
+        return self.mesh_
+
+    def remesh_unless(self, unchanged, **params) -> bool:
+        """`remesh` with ``params`` unless ``unchanged(outline, spacing)``, given the new
+        outline (p, 2) and grid spacing, says that what its caller uses of the mesh would come
+        out as it is (an atlas's part of its chart: `reconstruct.chart_parts`). Then only the
+        parameters, ``spline_`` and ``outline_`` are taken and ``mesh_`` is dropped. Returns
+        whether it re-meshed."""
+        _check_known(params)
         if not hasattr(self, "surface_map_"):
             raise NotFittedError("fit() the reconstructor (or load() a saved one) first")
         given = {k: v for k, v in params.items() if v is not None}
@@ -400,8 +414,13 @@ class SurfaceReconstructor(BaseEstimator):
         interpolants, fit_input = self._boundary_points()
         spline = BoundarySpline(lam=self.lam, variance=self.variance).fit(fit_input)
         outline = self._extended(spline.polygon_)
-        bounded = time.perf_counter()
         spacing = self.grid_spacing or default_spacing(outline, len(self.embedding_))
+        if unchanged is not None and unchanged(outline, spacing):
+            self.boundary_points_, self.spline_, self.outline_ = interpolants, spline, outline
+            for name in ("mesh_", "vertices_2d_"):
+                self.__dict__.pop(name, None)
+            return False
+        bounded = time.perf_counter()
         boundary_vertices = sample_ring(outline, spacing)
         vertices_2d, faces = mesh_inside(outline, boundary_vertices, spacing,
                                          lattice=self.grid_spacing is not None)
@@ -424,7 +443,7 @@ class SurfaceReconstructor(BaseEstimator):
             len(faces),
             1000 * (time.perf_counter() - started),
         )
-        return self.mesh_
+        return True
 
     def _faces_seen_side(self, vertices, faces) -> bool:
         """Whether the map's faces (f, 3) over ``vertices`` (v, 3) face the side the cloud was

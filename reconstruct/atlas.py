@@ -43,7 +43,7 @@ import trimesh
 from sklearn.base import BaseEstimator
 
 from .chart_fit import chart_workers, fit_charts, n_chart_workers, warm_up
-from .chart_parts import ChartPart, chart_part, unchanged
+from .chart_parts import ChartPart, chart_part, parts_from_state, parts_state, unchanged
 from .chart_sides import ChartSides, uncharted_points
 from .charts import ChartDecomposition
 from .closed_grid import ClosedSDF
@@ -55,6 +55,7 @@ from .join import (
     check_up,
     faces_seen_side,
     implicit_mesh,
+    kept_mesh,
     orient_charts,
     owned,
     stretched_samples,
@@ -518,6 +519,8 @@ class AtlasReconstructor(BaseEstimator):
         parts = self.__dict__.get("_parts")
         if parts is not None and len(parts) != len(self.charts_):
             parts = None
+        if parts is not None and "_owners" not in self.__dict__:  # loaded with its parts
+            self._owners = self._chart_owners()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", ReconstructionWarning)
             with ThreadPoolExecutor(min(REMESH_THREADS, len(self.charts_))) as pool:
@@ -528,7 +531,8 @@ class AtlasReconstructor(BaseEstimator):
             warnings.warn(f"{len(said)} of {len(self.charts_)} charts: {said[0].message}",
                           ReconstructionWarning, stacklevel=2)
         self.timings_["remesh charts"] = time.perf_counter() - started
-        if any(fresh) or self.__dict__.get("_joined_up") != self._up_key():
+        if (any(fresh) or self.__dict__.get("_joined_up") != self._up_key()
+                or not self._mesh_stands()):
             self._join(decide=False, fresh=fresh)
             moved, nodes = self._sdf.n_changed_, self._sdf.n_evaluated_
         else:  # every chart's part as it was: the same samples, the same mesh
@@ -540,6 +544,22 @@ class AtlasReconstructor(BaseEstimator):
                  "nodes evaluated (%.0f ms)", sum(fresh), len(self.charts_), moved,
                  len(self.samples_), nodes, 1000 * self.timings_["remesh"])
         return self.mesh_
+
+    def _mesh_stands(self) -> bool:
+        """Whether ``mesh_`` is the join of the charts' parts as they are: it is, unless the
+        atlas was loaded and has not joined since; then the mesh its join's grid kept (the
+        same samples: `join.kept_mesh`) is taken if there is one."""
+        if "mesh_" in vars(self):
+            return True
+        grid = self.__dict__.get("_sdf")
+        mesh = None if grid is None else kept_mesh(grid, trim=self.trim, closed=self.closed_,
+                                                   seal=self.seal_)
+        if mesh is None:
+            return False
+        self.mesh_, self.samples_, self.normals_ = mesh, grid.samples_, grid.normals_
+        self.watertight_, self.winding_consistent_, self.euler_ = topology(mesh.faces)
+        self._joined_up = self._up_key()
+        return True
 
     def _remesh_chart(self, index: int, part: ChartPart | None, params: dict) -> bool:
         """Re-mesh chart ``index`` with ``params`` unless its ``part`` of the join cannot
@@ -568,9 +588,11 @@ class AtlasReconstructor(BaseEstimator):
         (embedded points, ONNX map, parameters, boundary samples; arrays ``chart<i>_*``), the
         cloud ``points`` (n, 3), its partition ``labels`` (n,), the ``chart_points`` of each
         chart (flat, cut at ``chart_offsets``) and the ``signs`` (c,) — what re-joining needs,
-        and no network — and the join's last samples and mesh (`SparseSDF.state` with its grid,
+        and no network — the join's last samples and mesh (`SparseSDF.state` with its grid,
         so a loaded open atlas re-meshes incrementally too; `ClosedSDF.state` without: a closed
-        one's first re-mesh that moves a sample evaluates its grid afresh), ``join_*``."""
+        one's first re-mesh that moves a sample evaluates its grid afresh), ``join_*``, and
+        each chart's part of the join (`chart_parts.parts_state`, ``part_*``: a loaded atlas's
+        first re-mesh skips the charts whose part cannot change, as the atlas saved would)."""
         if not hasattr(self, "charts_"):
             raise NotFittedError("nothing to save: fit() the atlas first")
         charts, arrays = [], {}
@@ -598,6 +620,9 @@ class AtlasReconstructor(BaseEstimator):
                       chart_offsets=np.cumsum([0, *sizes]), signs=np.asarray(self.signs_),
                       shells=np.asarray(self.shells_, bool),
                       thin=np.asarray(self.thin_, bool))
+        parts = self.__dict__.get("_parts")
+        if parts is not None and len(parts) == len(self.charts_):
+            arrays.update(parts_state(parts))
         return meta, arrays
 
     @classmethod
@@ -641,6 +666,9 @@ class AtlasReconstructor(BaseEstimator):
         if "join" in meta:  # the join's grid and last mesh: the first re-mesh is incremental
             kind = ClosedSDF if meta["join"].get("kind") == "closed" else SparseSDF
             self._sdf = kind.from_state(meta["join"], arrays, prefix="join_")
+            parts = parts_from_state(arrays, n_charts)  # with them, it skips charts at once
+            if parts is not None:
+                self._parts = parts
         return self
 
     def save(self, path: str | os.PathLike) -> Path:

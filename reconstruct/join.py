@@ -361,7 +361,7 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         sdf.follow(samples, normals, kept_open, uncharted)
     else:
         sdf.follow(samples, normals)
-    key = (JOIN_REVISION, trim, min_share, hole, closed, seal)
+    key = _mesh_key(trim, min_share, hole, closed, seal)
     sdf.hit_ = bool(data is None and sdf.n_changed_ == 0
                     and getattr(sdf, "mesh_key_", None) == key)
     if sdf.hit_:
@@ -409,6 +409,21 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     if sdf is grid and data is None:
         sdf.mesh_, sdf.mesh_key_ = mesh.copy(include_cache=True), key
     return mesh
+
+
+def _mesh_key(trim, min_share, hole, closed, seal) -> tuple:
+    """What a mesh `implicit_mesh` keeps in its grid was made with, besides the samples."""
+    return JOIN_REVISION, trim, min_share, hole, closed, seal
+
+
+def kept_mesh(grid, trim: float = 1.5, min_share: float = 0.005, hole: float = 12.0,
+              closed: bool = False, seal: float | None = None) -> trimesh.Trimesh | None:
+    """A copy of the mesh `implicit_mesh` with these parameters last made through ``grid``
+    (a loaded one's too) for the grid's samples as they are, or None if it keeps none."""
+    if (not hasattr(grid, "mesh_")
+            or getattr(grid, "mesh_key_", None) != _mesh_key(trim, min_share, hole, closed, seal)):
+        return None
+    return grid.mesh_.copy(include_cache=True)
 
 
 def _voids(mesh: trimesh.Trimesh, piece: np.ndarray, runs, largest: int) -> np.ndarray:

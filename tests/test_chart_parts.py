@@ -95,8 +95,8 @@ def test_remesh_skipping_charts_gives_the_mesh_of_meshing_them_all(torus_atlas):
             np.testing.assert_allclose(mesh.vertices, full.vertices, rtol=0, atol=1e-9)
             np.testing.assert_array_equal(mesh.faces, full.faces)
             meshed.append(skipping.remesh_counts_["charts meshed"])
-    assert meshed[0] == len(skipping.charts_)  # loaded: nothing kept yet
-    assert min(meshed[1:]) < len(skipping.charts_)  # some chart was skipped
+    assert meshed[0] < len(skipping.charts_)  # the state carries the fit's parts
+    assert max(meshed) < len(skipping.charts_)  # some chart skipped every time
     skipped = [chart for chart in skipping.charts_ if not hasattr(chart, "mesh_")]
     assert all(chart.lam == 1.0 and chart.depth == 2 for chart in skipping.charts_)
     if skipped:  # its parameters taken, its mesh dropped; asked for, it meshes again
@@ -118,3 +118,34 @@ def test_a_join_that_needs_the_faces_of_skipped_charts_meshes_them_again(torus_a
     assert all("mesh_" in vars(chart) for chart in skipping.charts_)
     np.testing.assert_allclose(skipping.mesh_.vertices, every.mesh_.vertices, rtol=0, atol=1e-9)
     np.testing.assert_array_equal(skipping.mesh_.faces, every.mesh_.faces)
+
+
+def test_a_loaded_atlas_skips_charts_at_its_first_remesh(torus_atlas, tmp_path):
+    atlas = AtlasReconstructor.from_state(*torus_atlas.state())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ReconstructionWarning)
+        atlas.remesh()  # joined once: its parts are kept, and saved
+        path = atlas.save(tmp_path / "atlas.npz")
+        loaded, without = AtlasReconstructor.load(path), AtlasReconstructor.load(path)
+        del without._parts  # as a state saved before the parts were
+        for change in ({}, {"lam": 2.0}):
+            mesh, full = loaded.remesh(**change), without.remesh(**change)
+            np.testing.assert_allclose(mesh.vertices, full.vertices, rtol=0, atol=1e-9)
+            np.testing.assert_array_equal(mesh.faces, full.faces)
+    assert loaded.remesh_counts_["charts meshed"] < len(loaded.charts_)
+    assert loaded.watertight_ and loaded.euler_ == without.euler_ == 0
+
+
+def test_a_state_whose_parts_do_not_fit_its_charts_is_refused(torus_atlas, tmp_path):
+    from reconstruct.errors import InvalidInputError
+    from reconstruct.io import read_state, write_state
+
+    atlas = AtlasReconstructor.from_state(*torus_atlas.state())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ReconstructionWarning)
+        atlas.remesh()
+    meta, arrays = read_state(atlas.save(tmp_path / "atlas.npz"))
+    arrays = {**arrays, "part_sizes": arrays["part_sizes"][:-1]}
+    path = write_state(tmp_path / "bad.npz", meta, arrays)
+    with pytest.raises(InvalidInputError, match="damaged atlas state.*parts"):
+        AtlasReconstructor.load(path)

@@ -241,7 +241,7 @@ def test_socket_closed_mid_move_raises_disconnected():
                 with contextlib.suppress(TimeoutError):
                     firmware.receive(connection.recv(4096))
                 connection.sendall(firmware.read_output())
-        closed_at.append(time.monotonic())
+            closed_at.append(time.monotonic())  # before the close: the driver may see it first
 
     bridge = threading.Thread(target=serve)
     bridge.start()

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -256,18 +257,30 @@ class AtlasReconstructor(BaseEstimator):
             decomposition = None
         started = time.perf_counter()
         self.timings_ = {}
+        stopping = None
         try:
-            points = check_points(points)
-            if self.up is not None:
-                check_up(self.up)
-            if workers is None:
-                workers = chart_workers(self.n_jobs)
-            points, fitted = self._fit_all(points, workers, started,
-                                           None if decomposition is None
-                                           else (charted, decomposition))
+            try:
+                points = check_points(points)
+                if self.up is not None:
+                    check_up(self.up)
+                if workers is None:
+                    workers = chart_workers(self.n_jobs)
+                points, fitted = self._fit_all(points, workers, started,
+                                               None if decomposition is None
+                                               else (charted, decomposition))
+            finally:  # the workers stop on their core while this one joins the charts (rough
+                # 20k: 0.55 s of stopping hidden)
+                if workers is not None:
+                    stopping = threading.Thread(target=workers.shutdown, name="chart workers")
+                    stopping.start()
+            self._assemble(points, fitted, started)
         finally:  # no worker outlives the fit: a process exiting joins its children first
-            if workers is not None:
-                workers.shutdown(wait=True)
+            if stopping is not None:
+                stopping.join()
+        return self
+
+    def _assemble(self, points, fitted: dict, started: float) -> None:
+        """Take the fitted charts (`_fit_all`'s), orient and join them."""
         order = sorted(i for i in fitted if fitted[i][0] is not None)
         if not order:
             raise FitError(f"no chart of the atlas could be fitted: {self.faults_[0]}")
@@ -283,7 +296,6 @@ class AtlasReconstructor(BaseEstimator):
         log.info("atlas: %d charts, %d faces, watertight %s, Euler %d (%.1f s)",
                  len(self.charts_), len(self.mesh_.faces), self.watertight_, self.euler_,
                  self.timings_["total"])
-        return self
 
     def _charted(self, points: np.ndarray) -> np.ndarray:
         """The points (m, 3) the atlas charts: all, or a random ``max_points`` of a denser

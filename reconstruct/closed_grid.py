@@ -64,6 +64,41 @@ _VOTE_NEIGHBOURS = 16
 _MOST = 0.25
 
 
+def squared_distance(targets: np.ndarray, radius: float) -> np.ndarray:
+    """(shape) int32: each node's squared Euclidean distance, in nodes, to the nearest True
+    node of ``targets``, exact where it is at most ``radius``² and above it (not exact)
+    elsewhere. Three separable passes of minima over the shifts of up to ⌊radius⌋ nodes (no
+    farther shift along one axis can be within ``radius``). scipy's exact transform of the
+    whole grid, ``distance_transform_edt(~targets)``, gives the same within ``radius``; the
+    join only needs it within a few voxels, and this took a fifth to a third of its time on a
+    7-million-node grid (radius 3 and 6)."""
+    reach = int(np.floor(radius))
+    far = np.int32(3 * (reach + 1) ** 2)  # farther than radius² and than any sum of in-range
+    squared = np.where(targets, np.int32(0), far)
+    for axis in range(squared.ndim):
+        nearest = squared.copy()
+        for shift in range(1, min(reach, squared.shape[axis] - 1) + 1):
+            low, high = [slice(None)] * squared.ndim, [slice(None)] * squared.ndim
+            low[axis], high[axis] = slice(0, -shift), slice(shift, None)
+            low, high = tuple(low), tuple(high)
+            np.minimum(nearest[high], squared[low] + shift * shift, out=nearest[high])
+            np.minimum(nearest[low], squared[high] + shift * shift, out=nearest[low])
+        squared = nearest
+    return squared
+
+
+def farther_than(targets: np.ndarray, radius: float) -> np.ndarray:
+    """(shape) bool: the nodes farther than ``radius`` nodes from every True node of
+    ``targets``, as ``distance_transform_edt(~targets) > radius`` says (the same square roots
+    compared)."""
+    limit = int(np.floor(radius * radius))  # the largest whole n with √n ≤ radius
+    while np.sqrt(limit + 1) <= radius:
+        limit += 1
+    while limit >= 0 and np.sqrt(limit) > radius:
+        limit -= 1
+    return squared_distance(targets, radius) > limit
+
+
 def grid_box(samples: np.ndarray, voxel: float, pad: float):
     """Origin (3,) and shape (3,) of a grid of spacing ``voxel`` round ``samples`` (m, 3)."""
     origin = samples.min(axis=0) - pad * voxel
@@ -233,7 +268,7 @@ class ClosedSDF:
         shape = tuple(int(n) for n in self.shape_)
         extra = uncharted(self.tree_) if callable(uncharted) else uncharted
         self._occupied = occupancy(self.samples_, extra, self.origin_, self.shape_, voxel)
-        self._free = ndimage.distance_transform_edt(~self._occupied) > seal
+        self._free = farther_than(self._occupied, seal)
         self._pockets = free_pockets(self._free)
         self._voting = self._vote()
         self._outside = pockets_outside(self._pockets, self._voting[1])
@@ -334,7 +369,8 @@ class ClosedSDF:
         limit = (self.band + 1) * self.voxel
         if not exterior.any():
             return np.full(exterior.shape, -limit)
-        distance = ndimage.distance_transform_edt(~exterior)
+        # beyond seal + band + 1 voxels the value is clipped: the distance is needed only within
+        distance = np.sqrt(squared_distance(exterior, self._seal + self.band + 1))
         return np.clip(self._seal * self.voxel - self.voxel * distance, -limit, limit)
 
     def _evaluate(self, flat: np.ndarray) -> None:
@@ -396,7 +432,7 @@ class ClosedSDF:
         for box in _boxes(cells, self.shape_, reach):
             outer, inner = _grown(box, reach, self.shape_)
             occupied = self._occupied[outer]
-            free = (ndimage.distance_transform_edt(~occupied) > self._seal if occupied.any()
+            free = (farther_than(occupied, self._seal) if occupied.any()
                     else np.ones(occupied.shape, bool))[inner]
             flipped.append(_flat_of(box, free != self._free[box], self.shape_))
             self._free[box] = free

@@ -40,7 +40,7 @@ from scipy.sparse.csgraph import (
 )
 from scipy.spatial import cKDTree
 
-from .closed_grid import ClosedSDF, exterior_of, grid_box, occupancy
+from .closed_grid import ClosedSDF, exterior_of, farther_than, grid_box, occupancy
 from .errors import InvalidInputError
 from .mesh_edges import (
     close_small_holes,
@@ -238,12 +238,10 @@ def exterior_grid(samples, voxel: float, band: float = 3.0, normals=None, pad=No
     ``extra`` (p, 3): points that occupy the grid like samples (data no chart represents),
     outside the grid ignored. Returns origin (3,), shape (3,), exterior and free, bool arrays
     of ``shape``."""
-    from scipy import ndimage
-
     samples = np.asarray(samples, float)
     origin, shape = grid_box(samples, voxel, band + 3 if pad is None else pad)
     occupied = occupancy(samples, extra, origin, shape, voxel)
-    free = ndimage.distance_transform_edt(~occupied) > band
+    free = farther_than(occupied, band)
     return origin, shape, exterior_of(free, origin, voxel, samples, normals), free
 
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from reconstruct.closed_grid import ClosedSDF
+from reconstruct.closed_grid import ClosedSDF, farther_than, squared_distance
 from reconstruct.join import implicit_mesh
 
 GRIDS = ["_occupied", "_free", "_exterior", "_closing", "_planes", "_nearest", "_ahead",
@@ -106,3 +106,19 @@ def test_a_mesh_kept_by_an_earlier_revision_of_the_join_is_not_given_back():
     older = ClosedSDF.from_state(meta, arrays, prefix="join_")
     again = implicit_mesh(samples, normals, voxel=0.06, closed=True, grid=older)
     assert not older.hit_ and np.array_equal(again.vertices, first.vertices)
+
+
+@pytest.mark.parametrize("radius", [0.5, 1.0, 2.9, 3.0, np.sqrt(10.0), 4.5, 6.0, 7.0])
+def test_capped_distances_are_scipys_within_their_radius(radius):
+    from scipy import ndimage
+
+    rng = np.random.default_rng(int(radius * 10))
+    for shape, share in (((40, 31, 17), 0.002), ((5, 60, 3), 0.02), ((9, 9, 9), 0.0015)):
+        targets = rng.random(shape) < share
+        targets.flat[rng.integers(targets.size)] = True
+        exact = ndimage.distance_transform_edt(~targets)
+        capped = np.sqrt(squared_distance(targets, radius))
+        near = exact <= radius
+        np.testing.assert_array_equal(capped[near], exact[near])  # bit for bit
+        assert (capped[~near] > radius).all()
+        np.testing.assert_array_equal(farther_than(targets, radius), exact > radius)

@@ -603,7 +603,7 @@ class AtlasReconstructor(BaseEstimator):
         and no network — the join's last samples and mesh (`SparseSDF.state` with its grid,
         so a loaded open atlas re-meshes incrementally too; `ClosedSDF.state` without: a closed
         one's first re-mesh that moves a sample evaluates its grid afresh), ``join_*``, and
-        each chart's part of the join (`chart_parts.parts_state`, ``part_*``: a loaded atlas's
+        each chart's part of the join (`chart_parts.parts_state`, ``part<i>_*``: a loaded atlas's
         first re-mesh skips the charts whose part cannot change, as the atlas saved would)."""
         if not hasattr(self, "charts_"):
             raise NotFittedError("nothing to save: fit() the atlas first")

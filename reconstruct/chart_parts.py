@@ -113,62 +113,28 @@ def unchanged(part: ChartPart | None, outline, spacing: float, surface_map, mine
 
 
 def parts_state(parts: list[ChartPart]) -> dict[str, np.ndarray]:
-    """The ``parts`` of an atlas's charts as flat arrays (``part_*``), for its `state`."""
-    lattice = np.array([part.nodes is not None for part in parts], bool)
-    extra = np.array([-1 if part.extra is None else len(part.extra) for part in parts])
-    shapes = np.array([part.deep.shape if part.deep is not None else (0, 0) for part in parts])
-    with_extra = [part for part in parts if part.extra is not None]
-    return {
-        "part_sizes": np.array([len(part.kept) for part in parts]),
-        "part_samples": np.concatenate([part.samples for part in parts]).reshape(-1, 3),
-        "part_normals": np.concatenate([part.normals for part in parts]).reshape(-1, 3),
-        "part_kept": np.concatenate([part.kept for part in parts]).astype(np.int64),
-        "part_lattice": lattice,
-        "part_nodes": np.concatenate([part.nodes for part in parts if part.nodes is not None]
-                                     or [np.zeros((0, 2), np.int64)]),
-        "part_first": np.array([part.first if part.first is not None else (0, 0)
-                                for part in parts]),
-        "part_deep_shapes": shapes,
-        "part_deep": np.concatenate([part.deep.ravel() for part in parts
-                                     if part.deep is not None] or [np.zeros(0, bool)]),
-        "part_extra_sizes": extra,
-        "part_extra": np.concatenate([p.extra for p in with_extra] or [np.zeros((0, 3))]),
-        "part_extra_normals": np.concatenate([p.extra_normals for p in with_extra]
-                                             or [np.zeros((0, 3))]),
-    }
+    """The ``parts`` of an atlas's charts as arrays ``part<i>_<field>`` (fields left None are
+    not written), for its `state`."""
+    return {f"part{i}_{name}": np.asarray(value) for i, part in enumerate(parts)
+            for name, value in vars(part).items() if value is not None}
 
 
 def parts_from_state(arrays: dict, n_charts: int) -> list[ChartPart] | None:
-    """The parts `parts_state` wrote (None when the state has none: written before them);
-    raises ValueError when they do not fit ``n_charts`` charts."""
-    if "part_sizes" not in arrays:
+    """The parts `parts_state` wrote for ``n_charts`` charts (None when the state has none:
+    written before them); raises ValueError when they do not fit the charts."""
+    if not any(name.startswith("part") and name[4:5].isdigit() for name in arrays):
         return None
-    sizes = np.asarray(arrays["part_sizes"], np.int64)
-    lattice = np.asarray(arrays["part_lattice"], bool)
-    extra = np.asarray(arrays["part_extra_sizes"], np.int64)
-    shapes = np.asarray(arrays["part_deep_shapes"], np.int64).reshape(-1, 2)
-    first = np.asarray(arrays["part_first"], np.int64).reshape(-1, 2)
-    if not len(sizes) == len(lattice) == len(extra) == len(shapes) == len(first) == n_charts:
-        raise ValueError("its chart parts and charts do not agree")
-    cut = np.cumsum(sizes)[:-1]
-    samples = np.split(np.asarray(arrays["part_samples"], float).reshape(-1, 3), cut)
-    normals = np.split(np.asarray(arrays["part_normals"], float).reshape(-1, 3), cut)
-    kept = np.split(np.asarray(arrays["part_kept"], np.int64), cut)
-    nodes = np.split(np.asarray(arrays["part_nodes"], np.int64).reshape(-1, 2),
-                     np.cumsum(sizes[lattice])[:-1])
-    deep = np.split(np.asarray(arrays["part_deep"], bool),
-                    np.cumsum(shapes[lattice].prod(axis=1))[:-1])
-    extra_cut = np.cumsum(np.maximum(extra, 0))[:-1]
-    extras = np.split(np.asarray(arrays["part_extra"], float).reshape(-1, 3), extra_cut)
-    extra_normals = np.split(np.asarray(arrays["part_extra_normals"], float).reshape(-1, 3),
-                             extra_cut)
-    parts, on_lattice = [], iter(zip(nodes, deep, strict=False))
+    parts = []
     for i in range(n_charts):
-        part = ChartPart(samples[i], normals[i], kept[i])
-        if lattice[i]:
-            part.nodes, flat = next(on_lattice)
-            part.first, part.deep = first[i], flat.reshape(shapes[i])
-        if extra[i] >= 0:
-            part.extra, part.extra_normals = extras[i], extra_normals[i]
+        fields = {name: arrays.get(f"part{i}_{name}") for name in ChartPart.__dataclass_fields__}
+        part = ChartPart(**fields)
+        k = len(part.kept) if part.kept is not None else -1
+        if (part.samples is None or part.normals is None or k < 0
+                or np.shape(part.samples) != (k, 3) or np.shape(part.normals) != (k, 3)
+                or (part.nodes is None) != (part.deep is None)
+                or (part.nodes is not None and (np.shape(part.nodes) != (k, 2)
+                                                or np.ndim(part.deep) != 2))
+                or (part.extra is None) != (part.extra_normals is None)):
+            raise ValueError("its chart parts and charts do not agree")
         parts.append(part)
     return parts

@@ -360,10 +360,11 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     else:
         sdf.follow(samples, normals)
     key = _mesh_key(trim, min_share, hole, closed, seal)
-    sdf.hit_ = bool(data is None and sdf.n_changed_ == 0
-                    and getattr(sdf, "mesh_key_", None) == key)
+    kept = (kept_mesh(sdf, trim, min_share, hole, closed, seal)
+            if data is None and sdf.n_changed_ == 0 else None)
+    sdf.hit_ = kept is not None
     if sdf.hit_:
-        return sdf.mesh_.copy(include_cache=True)  # the same samples: the same mesh
+        return kept  # the same samples: the same mesh
     tree = sdf.tree_
     if closed:
         if not hasattr(sdf, "values_"):  # loaded without its grid, and its mesh not kept

@@ -145,7 +145,7 @@ def test_a_state_whose_parts_do_not_fit_its_charts_is_refused(torus_atlas, tmp_p
         warnings.simplefilter("ignore", ReconstructionWarning)
         atlas.remesh()
     meta, arrays = read_state(atlas.save(tmp_path / "atlas.npz"))
-    arrays = {**arrays, "part_sizes": arrays["part_sizes"][:-1]}
+    arrays = {**arrays, "part1_normals": arrays["part1_normals"][:-1]}
     path = write_state(tmp_path / "bad.npz", meta, arrays)
     with pytest.raises(InvalidInputError, match="damaged atlas state.*parts"):
         AtlasReconstructor.load(path)

@@ -57,6 +57,7 @@ from .join import (
     faces_seen_side,
     implicit_mesh,
     kept_mesh,
+    kept_topology,
     orient_charts,
     owned,
     stretched_samples,
@@ -412,7 +413,8 @@ class AtlasReconstructor(BaseEstimator):
         self.samples_, self.normals_ = samples, normals
         self._joined_up = self._up_key()
         if decide or not (self._sdf.hit_ and hasattr(self, "euler_")):  # else the same mesh
-            self.watertight_, self.winding_consistent_, self.euler_ = topology(self.mesh_.faces)
+            self.watertight_, self.winding_consistent_, self.euler_ = (
+                kept_topology(self._sdf, self.mesh_.faces) or topology(self.mesh_.faces))
         if self.closed_ and not self.watertight_:
             warnings.warn("the cloud looks closed (its charts face out of one volume) but the "
                           "joined mesh is not watertight", ReconstructionWarning, stacklevel=3)

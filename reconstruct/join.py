@@ -365,6 +365,8 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     sdf.hit_ = kept is not None
     if sdf.hit_:
         return kept  # the same samples: the same mesh
+    for name in ("mesh_", "mesh_key_", "topology_"):  # of other samples: kept no longer
+        vars(sdf).pop(name, None)
     tree = sdf.tree_
     if closed:
         if not hasattr(sdf, "values_"):  # loaded without its grid, and its mesh not kept
@@ -403,11 +405,18 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     else:
         capped = close_small_holes(mesh, max_length=hole * voxel, runs=runs)
         mesh, runs = capped, (runs if capped is mesh else None)
-    if topology(np.asarray(mesh.faces), runs)[0] and signed_volume(mesh) < 0:  # watertight
+    facts = topology(np.asarray(mesh.faces), runs)
+    if facts[0] and signed_volume(mesh) < 0:  # watertight
         turn_faces(mesh)
     if sdf is grid and data is None:
-        sdf.mesh_, sdf.mesh_key_ = mesh.copy(include_cache=True), key
+        sdf.mesh_, sdf.mesh_key_, sdf.topology_ = _copied(mesh), key, facts
     return mesh
+
+
+def _copied(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """A copy of ``mesh``'s vertices and faces (``copy(include_cache=True)`` hashed both to
+    check its cache: 5 ms of a 45k-vertex re-mesh)."""
+    return trimesh.Trimesh(np.array(mesh.vertices), np.array(mesh.faces), process=False)
 
 
 def _mesh_key(trim, min_share, hole, closed, seal) -> tuple:
@@ -422,7 +431,16 @@ def kept_mesh(grid, trim: float = 1.5, min_share: float = 0.005, hole: float = 1
     if (not hasattr(grid, "mesh_")
             or getattr(grid, "mesh_key_", None) != _mesh_key(trim, min_share, hole, closed, seal)):
         return None
-    return grid.mesh_.copy(include_cache=True)
+    return _copied(grid.mesh_)
+
+
+def kept_topology(grid, faces) -> tuple[bool, bool, int] | None:
+    """`mesh_edges.topology` of ``faces`` (f, 3) if they are those of the mesh ``grid`` keeps
+    (`kept_mesh`) and it knows it; else None."""
+    known = getattr(grid, "topology_", None)
+    if known is None or not np.array_equal(grid.mesh_.faces, faces):
+        return None
+    return known
 
 
 def _voids(mesh: trimesh.Trimesh, piece: np.ndarray, runs, largest: int) -> np.ndarray:

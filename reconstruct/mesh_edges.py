@@ -41,6 +41,8 @@ def split_nonmanifold(mesh: trimesh.Trimesh, runs=None) -> trimesh.Trimesh:
     faces = np.asarray(mesh.faces)
     n_faces = len(faces)
     directed, order, run_start, run_length = edge_runs(faces) if runs is None else runs
+    if _one_fan_each(faces, directed, order, run_start, run_length):
+        return mesh
     corner_a = (3 * np.arange(n_faces)[:, None] + np.array([0, 1, 2])).ravel()
     corner_b = (3 * np.arange(n_faces)[:, None] + np.array([1, 2, 0])).ravel()
     pairs = run_start[run_length == 2]
@@ -59,6 +61,37 @@ def split_nonmanifold(mesh: trimesh.Trimesh, runs=None) -> trimesh.Trimesh:
     _, first_corner = np.unique(fan, return_index=True)
     return trimesh.Trimesh(np.asarray(mesh.vertices)[old_vertex[first_corner]],
                            fan.reshape(-1, 3), process=False)
+
+
+def _one_fan_each(faces, directed, order, run_start, run_length) -> bool:
+    """Whether every vertex of ``faces`` (f, 3; its `edge_runs`) has its faces in one fan,
+    known cheaply when every edge has two faces wound against each other: then the faces
+    round a vertex, stepped across the edges, form cycles, and the vertex has one fan when
+    the cycle through one of its corners holds all of them (a 45k-vertex join: 6 ms instead
+    of 17 ms for the corners' connected components). False when not known."""
+    if len(faces) == 0 or not np.all(run_length == 2):
+        return False
+    first, second = order[run_start], order[run_start + 1]
+    if np.any(directed[first, 0] == directed[second, 0]):  # wound the same way: not known
+        return False
+    twin = np.empty(len(directed), np.int64)
+    twin[first], twin[second] = second, first
+    # half-edge h = a→b leaves a at the corner 3·face(h) + h % 3; its twin b→a enters a at the
+    # twin's next corner: the corner at a of the face across the edge
+    following = 3 * (twin // 3) + (twin % 3 + 1) % 3  # (3f,) next corner round its vertex
+    corners = np.bincount(faces.ravel())
+    used = np.flatnonzero(corners)
+    start = np.empty(len(corners), np.int64)
+    start[faces.ravel()] = np.arange(3 * len(faces))  # a corner of each vertex
+    start = start[used]
+    # one fan: the walk from its corner first comes back after as many steps as it has corners
+    count, here = corners[used], start
+    one_fan = np.ones(len(used), bool)
+    for step in range(1, int(count.max()) + 1):
+        here = following[here]
+        back = here == start
+        one_fan &= np.where(count == step, back, ~back | (count < step))
+    return bool(one_fan.all())
 
 
 def _edge_keys(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import shapely
-from scipy.spatial import Delaunay, cKDTree
+from scipy.spatial import Delaunay
 
 from .errors import FitError
 
@@ -110,26 +110,26 @@ def _grid_nodes(polygon, spacing, lattice=False):
     ny = int(np.ceil((hi[1] - lo[1]) / spacing)) + 1
     inside = rasterize(polygon, lo, spacing, (ny + 1, nx + 1))
     # Nodes closer than half a spacing to the boundary would make slivers with the boundary points;
-    # only nodes in cells the boundary passes through (grown by one) can be that close.
+    # a node that close to a point of the dense ring is a corner of the point's cell (a cKDTree
+    # of the ring and a query of the nodes round it took 0.45 ms of a 4.4 ms chart re-mesh).
     ring = _densify(polygon, spacing / 4)
     cells = np.floor((ring - lo) / spacing).astype(np.int64)
-    candidate = np.zeros_like(inside)
-    step = np.arange(-1, 3)
-    j = np.clip(cells[:, 1, None, None] + step[None, :, None], 0, ny)  # (r, 4, 1)
-    i = np.clip(cells[:, 0, None, None] + step[None, None, :], 0, nx)  # (r, 1, 4)
-    candidate[j, i] = True
-    candidate &= inside
+    corner_i = np.clip(cells[:, 0, None] + _CORNERS[:, 0], 0, nx)  # (r, 4)
+    corner_j = np.clip(cells[:, 1, None] + _CORNERS[:, 1], 0, ny)
+    xy = node_xy(corner_i.ravel(), corner_j.ravel()).reshape(-1, 4, 2)
+    close = np.sqrt(np.sum((xy - ring[:, None, :]) ** 2, axis=2)) < 0.5 * spacing
     near = np.zeros_like(inside)
-    if candidate.any():
-        cj, ci = np.nonzero(candidate)
-        distance, _ = cKDTree(ring).query(node_xy(ci, cj))
-        near[cj, ci] = distance < 0.5 * spacing
+    near[corner_j[close], corner_i[close]] = True
     used = inside & ~near
     index = np.full(used.shape, -1, dtype=np.int64)
     index[used] = np.arange(int(used.sum()))
     full = used[:-1, :-1] & used[1:, :-1] & used[:-1, 1:] & used[1:, 1:]
     uj, ui = np.nonzero(used)
     return lo, index, node_xy(ui, uj), full
+
+
+#: The (column, row) offsets of a cell's four corner nodes from its lower one.
+_CORNERS = np.array([[0, 0], [1, 0], [0, 1], [1, 1]])
 
 
 def rasterize(polygon, origin, spacing, shape):
@@ -154,9 +154,8 @@ def rasterize(polygon, origin, spacing, shape):
     t = (ys[row] - a[:, 1]) / (b[:, 1] - a[:, 1])
     x = a[:, 0] + t * (b[:, 0] - a[:, 0])
     col = np.clip(np.ceil((x - origin[0]) / spacing).astype(np.int64), 0, cols)
-    toggles = np.zeros((rows, cols + 1), dtype=np.int64)
-    np.add.at(toggles, (row, col), 1)
-    return (np.cumsum(toggles, axis=1)[:, :cols] % 2) == 1
+    toggles = np.bincount(row * (cols + 1) + col, minlength=rows * (cols + 1))
+    return (np.cumsum(toggles.reshape(rows, cols + 1), axis=1)[:, :cols] % 2) == 1
 
 
 def _full_cell_faces(full, index):

@@ -63,6 +63,19 @@ def changed_rows(old, old_normals, old_tree: cKDTree, samples, normals, toleranc
     ``old_tree``: a cKDTree of ``old``."""
     if len(samples) == 0 or len(old) == 0:
         return np.ones(len(samples), bool), np.ones(len(old), bool)
+    head, tail = _equal_ends((old, old_normals, old_tags), (samples, normals, tags))
+    if head or tail:  # a join's samples are its charts' in order: a re-mesh changes a few
+        added, removed = np.zeros(len(samples), bool), np.zeros(len(old), bool)
+        middle, old_middle = slice(head, len(samples) - tail), slice(head, len(old) - tail)
+        if len(old) - tail > head:
+            added[middle], removed[old_middle] = changed_rows(
+                old[old_middle], old_normals[old_middle], cKDTree(old[old_middle]),
+                samples[middle], normals[middle], tolerance, voxel,
+                None if tags is None else old_tags[old_middle],
+                None if tags is None else tags[middle])
+        else:
+            added[middle] = True
+        return added, removed
     gap, match = old_tree.query(samples, distance_upper_bound=2 * tolerance)
     same = gap <= tolerance
     same[same] = np.all(np.abs(normals[same] - old_normals[match[same]]) <= tolerance / voxel,
@@ -74,6 +87,24 @@ def changed_rows(old, old_normals, old_tree: cKDTree, samples, normals, toleranc
     kept = np.zeros(len(old), bool)
     kept[match[same]] = True
     return ~same, ~kept
+
+
+def _equal_ends(old: tuple, new: tuple) -> tuple[int, int]:
+    """How many leading and trailing rows the arrays ``old`` (tuple of (m, ...) arrays, or
+    None) share exactly with ``new`` (the same fields, (m', ...)), the ends not overlapping."""
+    n = min(len(old[0]), len(new[0]))
+    same = np.ones(n, bool)
+    for a, b in zip(old, new, strict=True):
+        if a is not None:
+            same &= (a[:n] == b[:n]).reshape(n, -1).all(axis=1)
+    head = int(np.argmin(same)) if not same.all() else n
+    rest = n - head
+    same = np.ones(rest, bool)
+    for a, b in zip(old, new, strict=True):
+        if a is not None and rest:
+            same &= (a[len(a) - rest:] == b[len(b) - rest:]).reshape(rest, -1).all(axis=1)
+    tail = rest - 1 - int(np.flatnonzero(~same)[-1]) if not same.all() else rest
+    return head, tail
 
 
 class SparseSDF:

@@ -144,6 +144,20 @@ def test_sheets_touching_along_an_edge_are_parted():
     assert split_nonmanifold(sphere) is sphere
 
 
+def test_solids_touching_at_a_corner_are_parted():
+    # every edge in two faces, wound against each other: the cheap test of one fan a vertex
+    # (mesh_edges._one_fan_each) must still find the corner where the two fans meet
+    a, b = trimesh.creation.box(), trimesh.creation.box()
+    b.apply_translation((1, 1, 1))
+    touching = trimesh.util.concatenate([a, b])
+    touching.merge_vertices()
+    assert touching.is_watertight and touching.is_winding_consistent
+    assert len(touching.vertices) == 15
+    parted = split_nonmanifold(touching)
+    assert len(parted.vertices) == 16 and parted.euler_number == 4
+    assert np.array_equal(np.sort(parted.vertices, axis=0)[[0, -1]], [[-0.5] * 3, [1.5] * 3])
+
+
 def test_data_no_chart_represents_keeps_a_closed_join_whole():
     # the tube's wall has no samples round its middle (z 0.8–1.2, wider than twice the band):
     # the join closes each half apart, unless the data points there occupy the gap

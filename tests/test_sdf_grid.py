@@ -6,7 +6,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from reconstruct.join import implicit_mesh
-from reconstruct.sdf_grid import SparseSDF
+from reconstruct.sdf_grid import SparseSDF, changed_rows
 
 
 def dense(samples, normals, voxel, band, origin, shape):
@@ -96,3 +96,28 @@ def test_a_saved_grid_continues_where_it_stopped():
     sdf.update(bumped, normals)
     assert loaded.n_changed_ == sdf.n_changed_ > 0
     np.testing.assert_array_equal(loaded.values_, sdf.values_)
+
+
+def test_changed_rows_finds_a_change_between_unchanged_ends():
+    rng = np.random.default_rng(3)
+    old, old_normals = rng.normal(size=(100, 3)), rng.normal(size=(100, 3))
+    fresh = rng.normal(size=(5, 3))
+    flags = np.r_[[False] * 100, [True] * 5]
+    cases = {  # new samples and normals, which of them are new, which old ones are gone
+        "middle replaced": (np.r_[old[:40], fresh, old[50:]],
+                            np.r_[old_normals[:40], fresh, old_normals[50:]],
+                            np.r_[flags[:40], flags[-5:], flags[:50]], np.arange(40, 50)),
+        "cut short": (old[:70], old_normals[:70], flags[:70], np.arange(70, 100)),
+        "grown": (np.r_[old, fresh], np.r_[old_normals, fresh], flags, []),
+        "one normal turned": (old, np.r_[old_normals[:99], -old_normals[99:]],
+                              np.arange(100) == 99, [99]),
+        "moved within tolerance": (old + 1e-12, old_normals, flags[:100], []),
+    }
+    for name, (samples, normals, added, removed) in cases.items():
+        got_added, got_removed = changed_rows(old, old_normals, cKDTree(old), samples, normals,
+                                              1e-9, 1.0)
+        assert np.array_equal(got_added, added), name
+        assert np.array_equal(np.flatnonzero(got_removed), removed), name
+    got_added, got_removed = changed_rows(old, old_normals, cKDTree(old), old, old_normals,
+                                          1e-9, 1.0, flags[:100], np.arange(100) == 50)
+    assert np.flatnonzero(got_added).tolist() == np.flatnonzero(got_removed).tolist() == [50]

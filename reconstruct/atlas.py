@@ -45,7 +45,7 @@ from sklearn.base import BaseEstimator
 
 from .chart_fit import chart_workers, fit_charts, n_chart_workers, warm_up
 from .chart_parts import ChartPart, chart_part, parts_from_state, parts_state, unchanged
-from .chart_sides import ChartSides, uncharted_points
+from .chart_sides import ChartSides, UnchartedTracker, uncharted_points
 from .charts import ChartDecomposition
 from .closed_grid import ClosedSDF
 from .errors import FitError, InvalidInputError, NotFittedError, ReconstructionWarning
@@ -399,8 +399,7 @@ class AtlasReconstructor(BaseEstimator):
             kept_open.append(np.full(len(s), bool(far_face)))  # both faces of its shell
         samples, normals = np.concatenate(samples), np.concatenate(normals)
         kept_open = np.concatenate(kept_open)
-        spacing = self.decomposition_.spacing_
-        uncharted = ((lambda tree: uncharted_points(self.points_, samples, spacing, tree))
+        uncharted = ((lambda tree: self._uncharted_tracker()(samples, tree))
                      if self.closed_ else None)
         self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim,
                                    closed=self.closed_, seal=self.seal_, uncharted=uncharted,
@@ -419,6 +418,14 @@ class AtlasReconstructor(BaseEstimator):
             warnings.warn("the cloud looks closed (its charts face out of one volume) but the "
                           "joined mesh is not watertight", ReconstructionWarning, stacklevel=3)
         self.timings_["join"] = time.perf_counter() - started
+
+    def _uncharted_tracker(self) -> UnchartedTracker:
+        """The closed join's `UnchartedTracker` of the charted points, kept between re-meshes."""
+        tracker = self.__dict__.get("_tracker")
+        spacing = self.decomposition_.spacing_
+        if tracker is None or tracker.points is not self.points_ or tracker.spacing != spacing:
+            tracker = self._tracker = UnchartedTracker(self.points_, spacing)
+        return tracker
 
     def _exterior_probe(self, chart_samples_, voxel: float) -> ExteriorProbe:
         """The `ExteriorProbe` the charts' sides were decided with, kept for re-meshing (a

@@ -63,7 +63,7 @@ def changed_rows(old, old_normals, old_tree: cKDTree, samples, normals, toleranc
     ``old_tree``: a cKDTree of ``old``."""
     if len(samples) == 0 or len(old) == 0:
         return np.ones(len(samples), bool), np.ones(len(old), bool)
-    head, tail = _equal_ends((old, old_normals, old_tags), (samples, normals, tags))
+    head, tail = equal_ends((old, old_normals, old_tags), (samples, normals, tags))
     if head or tail:  # a join's samples are its charts' in order: a re-mesh changes a few
         added, removed = np.zeros(len(samples), bool), np.zeros(len(old), bool)
         middle, old_middle = slice(head, len(samples) - tail), slice(head, len(old) - tail)
@@ -89,7 +89,7 @@ def changed_rows(old, old_normals, old_tree: cKDTree, samples, normals, toleranc
     return ~same, ~kept
 
 
-def _equal_ends(old: tuple, new: tuple) -> tuple[int, int]:
+def equal_ends(old: tuple, new: tuple) -> tuple[int, int]:
     """How many leading and trailing rows the arrays ``old`` (tuple of (m, ...) arrays, or
     None) share exactly with ``new`` (the same fields, (m', ...)), the ends not overlapping."""
     n = min(len(old[0]), len(new[0]))

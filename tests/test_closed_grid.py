@@ -4,7 +4,9 @@ node for node, and it gives the same mesh (reconstruct.closed_grid)."""
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 
+from reconstruct.chart_sides import UnchartedTracker, uncharted_points
 from reconstruct.closed_grid import ClosedSDF, farther_than, squared_distance
 from reconstruct.join import implicit_mesh
 
@@ -122,3 +124,22 @@ def test_capped_distances_are_scipys_within_their_radius(radius):
         np.testing.assert_array_equal(capped[near], exact[near])  # bit for bit
         assert (capped[~near] > radius).all()
         np.testing.assert_array_equal(farther_than(targets, radius), exact > radius)
+
+
+def test_the_uncharted_tracker_finds_what_a_fresh_look_finds():
+    samples, _ = torus_samples()
+    rng = np.random.default_rng(4)
+    spacing = 0.05
+    # data the samples leave out: a cluster off the surface, and single points (noise)
+    points = np.concatenate([samples[::3], samples[:40] * 1.3, rng.normal(size=(5, 3)) * 3])
+    tracker = UnchartedTracker(points, spacing)
+    steps = [samples, samples[:-300], np.concatenate([samples[:500], samples[700:]]),
+             np.concatenate([samples[:500], samples[700:] + 0.02]), samples[::2], samples]
+    sizes = []
+    for step, now in enumerate(steps):
+        tree = cKDTree(now)
+        expected = uncharted_points(points, now, spacing, tree)
+        found = tracker(now, tree)
+        assert np.array_equal(found, expected), step
+        sizes.append(len(found))
+    assert len(set(sizes)) >= 3, sizes  # the changes do change what is uncharted

@@ -26,6 +26,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from .marching import KeptMarch
 from .sdf_grid import changed_rows, imls, kept_mesh_arrays, restore_kept_mesh
 
 #: Voxels from the nearest sample within which a closed join trusts the tangent planes alone.
@@ -484,6 +485,14 @@ class ClosedSDF:
         for box in _boxes(touched, self.shape_, reach):
             outer, inner = _grown(box, reach, self.shape_)
             self.values_[box] = self._smoothed(self._values[outer], self._holding(outer))[inner]
+
+    def march(self) -> tuple[np.ndarray, np.ndarray]:
+        """Marching cubes of ``values_`` at 0: vertices (v, 3) float32 in voxel units from
+        ``origin_``, faces (f, 3), as skimage's, marched again only round the nodes that
+        changed since the last call (`reconstruct.marching.KeptMarch`)."""
+        if "_march" not in self.__dict__:
+            self._march = KeptMarch()
+        return self._march(self.values_, self.voxel)
 
     # -- persistence ---------------------------------------------------------------------------
     def state(self, prefix: str = "") -> tuple[dict, dict[str, np.ndarray]]:

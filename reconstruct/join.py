@@ -371,11 +371,12 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     if closed:
         if not hasattr(sdf, "values_"):  # loaded without its grid, and its mesh not kept
             sdf.fit(samples, normals, kept_open, uncharted)
-        values, mask, origin = sdf.values_, None, sdf.origin_
+        vertices, faces = sdf.march()  # marched again only round what changed
     else:
-        values, mask, origin = sdf.values_, sdf.mask_, sdf.origin_
-    vertices, faces, _, _ = marching_cubes(values, level=0.0, spacing=(voxel,) * 3, mask=mask,
-                                           gradient_direction="ascent", allow_degenerate=False)
+        vertices, faces, _, _ = marching_cubes(sdf.values_, level=0.0, spacing=(voxel,) * 3,
+                                               mask=sdf.mask_, gradient_direction="ascent",
+                                               allow_degenerate=False)
+    values, origin = sdf.values_, sdf.origin_
     # one vertex per grid edge the surface crosses: two coincide (trimesh's process merges them)
     # only at a node whose value is zero to rounding (skipping it: 12 ms of a 45k-vertex join)
     coincide = bool(np.abs(values).min(initial=np.inf) <= 1e-6 * voxel)

@@ -1,0 +1,66 @@
+"""The closed join's marching cubes, marched again only round what changed
+(`reconstruct.marching.KeptMarch`): always skimage's march of the whole grid, bit for bit."""
+
+import numpy as np
+from skimage.measure import marching_cubes
+
+from reconstruct.marching import KeptMarch
+
+
+def whole(values, voxel):
+    vertices, faces, _, _ = marching_cubes(values, level=0.0, spacing=(voxel,) * 3,
+                                           gradient_direction="ascent", allow_degenerate=False)
+    return vertices, faces
+
+
+def sphere(shape=(40, 44, 48), radius=14.3):
+    z, y, x = np.meshgrid(*(np.arange(n) - n / 2 for n in shape), indexing="ij")
+    return np.sqrt(x**2 + y**2 + z**2) - radius
+
+
+def test_a_kept_march_is_the_whole_march_through_local_changes():
+    rng = np.random.default_rng(0)
+    values = sphere() + rng.normal(0, 1.0, (40, 44, 48))  # rough: ambiguous cells, centre vertices
+    march, voxel = KeptMarch(), 0.37
+    local = 0
+    for step in range(12):
+        if step:
+            values = values.copy()
+            corner = rng.integers(0, [34, 38, 42])
+            size = rng.integers(1, 7, 3)
+            box = tuple(slice(int(a), int(a + b)) for a, b in zip(corner, size, strict=True))
+            values[box] += rng.normal(0, 1.0, values[box].shape)  # bumps, holes, new bits
+        if step == 6:
+            values[0:30, 0:30, 0:30] = 5.0  # a change over a large part: the whole grid again
+        vertices, faces = march(values, voxel)
+        expected_vertices, expected_faces = whole(values, voxel)
+        assert vertices.dtype == expected_vertices.dtype == np.float32
+        np.testing.assert_array_equal(vertices, expected_vertices)
+        np.testing.assert_array_equal(faces, expected_faces)
+        local += not march.whole_
+    assert local >= 8  # most steps followed the kept march
+
+
+def test_a_change_that_removes_the_surface_in_its_box_and_an_unchanged_grid():
+    values = sphere()
+    march = KeptMarch()
+    march(values, 1.0)
+    inside = values.copy()
+    inside[18:24, 20:26, 4:12] = -3.0  # the sphere's wall there is gone: no surface in the box
+    for grid in (inside, inside, values):
+        vertices, faces = march(grid, 1.0)
+        expected_vertices, expected_faces = whole(grid, 1.0)
+        np.testing.assert_array_equal(vertices, expected_vertices)
+        np.testing.assert_array_equal(faces, expected_faces)
+        assert not march.whole_
+
+
+def test_values_on_the_level_march_the_whole_grid_as_skimage_does():
+    values = sphere()
+    values[np.abs(values) < 0.5] = 0.0  # vertices on nodes, which several edges share
+    march = KeptMarch()
+    for grid in (values, values + 0.0, np.where(values == 0.0, 1e-9, values)):
+        vertices, faces = march(grid, 0.5)
+        expected_vertices, expected_faces = whole(grid, 0.5)
+        np.testing.assert_array_equal(vertices, expected_vertices)
+        np.testing.assert_array_equal(faces, expected_faces)

@@ -35,16 +35,15 @@ import threading
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
-from concurrent.futures import wait as wait_for
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import trimesh
 from sklearn.base import BaseEstimator
 
-from .chart_fit import chart_workers, fit_charts, n_chart_workers, warm_up
-from .chart_parts import ChartPart, chart_part, parts_from_state, parts_state, unchanged
+from .atlas_state import ATLAS_FORMAT, atlas_from_state, atlas_state
+from .chart_fit import BegunFit, chart_workers, fit_charts, n_chart_workers, warm_up
+from .chart_parts import ChartPart, chart_part, unchanged
 from .chart_sides import ChartSides, UnchartedTracker, uncharted_points
 from .charts import ChartDecomposition
 from .closed_grid import ClosedSDF
@@ -71,10 +70,6 @@ from .validation import check_points
 
 log = logging.getLogger(__name__)
 
-ATLAS_FORMAT = "scanstation-atlas/1"
-#: Parameters of the fit only (a loaded atlas re-meshes, it does not fit): not saved.
-_FIT_ONLY_PARAMS = ("graph", "n_jobs", "hidden_layers", "n_neighbors")
-
 #: Charts re-meshed at once, in threads (ONNX Runtime, GEOS and qhull release the GIL): torus
 #: 22k, 37 charts, 2 cores: 266 -> 187 ms when measured; 280 -> 265 ms on a slower day
 #: (2026-12-04), when most of a chart's 7.7 ms held the GIL (Python and small numpy calls).
@@ -84,18 +79,6 @@ REMESH_THREADS = 2
 #: sides). A closed join closes such gaps itself, and the samples only add noise there
 #: (figurine 20k seed 0: Chamfer 0.159 → 0.168).
 STRETCHED = 2.0
-
-
-class _Begun(NamedTuple):
-    """What `AtlasReconstructor.warm` / `start` began: the points and their charted subset
-    (None when only warmed), the worker pool, the decomposition's future (None when only
-    warmed) and the workers' torch imports (one future each)."""
-
-    points: object
-    charted: object
-    workers: object
-    decomposition: object
-    warming: list
 
 
 class AtlasReconstructor(BaseEstimator):
@@ -192,7 +175,7 @@ class AtlasReconstructor(BaseEstimator):
         self.cancel()
         workers = chart_workers(self.n_jobs, warm=False)
         if workers is not None:
-            self._started = _Begun(None, None, workers, None,
+            self._started = BegunFit(None, None, workers, None,
                                    warm_up(workers, n_chart_workers(self.n_jobs)))
         return self
 
@@ -217,7 +200,7 @@ class AtlasReconstructor(BaseEstimator):
         decomposition = workers.submit(self._decomposition().fit, charted)
         if warming is None:  # after the decomposition, which needs no torch
             warming = warm_up(workers, n_chart_workers(self.n_jobs))
-        self._started = _Begun(points, charted, workers, decomposition, warming)
+        self._started = BegunFit(points, charted, workers, decomposition, warming)
         return self
 
     def idle_workers(self) -> tuple:
@@ -225,30 +208,13 @@ class AtlasReconstructor(BaseEstimator):
         imported torch and decomposed the cloud if asked, or (None, 0): idle, it may serve
         other fitting until `fit` or `cancel`."""
         started = self.__dict__.get("_started")
-        if started is None or not all(  # done, and well: a failed import says the pool is not
-                f.done() and not f.cancelled() and f.exception() is None
-                for f in (started.decomposition, *started.warming) if f is not None):
-            return None, 0
-        return started.workers, len(started.warming)  # one import per worker
+        return (None, 0) if started is None else started.idle()
 
     def cancel(self) -> None:
-        """Drop what `warm` or `start` began: wait for a decomposition, then stop the workers
-        in their torch import (waiting for it cost a 20k sphere cap's one-chart fit 2.2 s).
-        Loky's `kill_workers` earlier than that left a worker blocked sending its result, or
-        its manager thread raised on an item not yet dispatched."""
+        """Drop what `warm` or `start` began (`chart_fit.BegunFit.stop`)."""
         started = self.__dict__.pop("_started", None)
-        if started is None:
-            return
-        _, _, workers, decomposition, warming = started
-        if decomposition is not None:
-            wait_for([decomposition])
-        deadline = time.monotonic() + 10.0
-        while not all(f.running() or f.done() for f in warming):  # dispatched, in a moment
-            if time.monotonic() > deadline:
-                workers.shutdown(wait=True)
-                return
-            time.sleep(0.005)
-        workers.shutdown(wait=True, kill_workers=True)
+        if started is not None:
+            started.stop()
 
     def fit(self, points, y=None) -> AtlasReconstructor:
         """points : (n, 3) float. Returns self with ``mesh_`` set."""
@@ -605,92 +571,15 @@ class AtlasReconstructor(BaseEstimator):
 
     # -- persistence ---------------------------------------------------------------------------
     def state(self) -> tuple[dict, dict[str, np.ndarray]]:
-        """The fitted state as (meta, arrays): every chart's `SurfaceReconstructor.state`
-        (embedded points, ONNX map, parameters, boundary samples; arrays ``chart<i>_*``), the
-        cloud ``points`` (n, 3), its partition ``labels`` (n,), the ``chart_points`` of each
-        chart (flat, cut at ``chart_offsets``) and the ``signs`` (c,) — what re-joining needs,
-        and no network — the join's last samples and mesh (`SparseSDF.state` with its grid,
-        so a loaded open atlas re-meshes incrementally too; `ClosedSDF.state` without: a closed
-        one's first re-mesh that moves a sample evaluates its grid afresh), ``join_*``, and
-        each chart's part of the join (`chart_parts.parts_state`, ``part<i>_*``: a loaded atlas's
-        first re-mesh skips the charts whose part cannot change, as the atlas saved would)."""
-        if not hasattr(self, "charts_"):
-            raise NotFittedError("nothing to save: fit() the atlas first")
-        charts, arrays = [], {}
-        for index, chart in enumerate(self.charts_):
-            meta, chart_arrays = chart.state(prefix=f"chart{index}_")
-            charts.append(meta)
-            arrays.update(chart_arrays)
-        meta = {
-            "format": ATLAS_FORMAT,
-            "params": {k: v for k, v in self.get_params(deep=False).items()
-                       if k not in _FIT_ONLY_PARAMS},
-            "charts": charts,
-            "chart_ids": [int(i) for i in self._chart_ids],
-            "spacing": float(self.decomposition_.spacing_),
-            "faults": list(self.faults_),
-            "closed": bool(self.closed_),
-            "seal": float(self.seal_),
-        }
-        if hasattr(self, "_sdf") and hasattr(self._sdf, "samples_"):
-            meta["join"], join_arrays = self._sdf.state(prefix="join_")
-            arrays.update(join_arrays)
-        sizes = [len(members) for members in self.chart_points_]
-        arrays.update(points=self.points_, labels=self.decomposition_.labels_,
-                      chart_points=np.concatenate(self.chart_points_),
-                      chart_offsets=np.cumsum([0, *sizes]), signs=np.asarray(self.signs_),
-                      shells=np.asarray(self.shells_, bool),
-                      thin=np.asarray(self.thin_, bool))
-        parts = self.__dict__.get("_parts")
-        if parts is not None and len(parts) == len(self.charts_):
-            arrays.update(parts_state(parts))
-        return meta, arrays
+        """The fitted state as (meta, arrays): what re-meshing needs, and no network
+        (`reconstruct.atlas_state.atlas_state`)."""
+        return atlas_state(self)
 
     @classmethod
     def from_state(cls, meta: dict, arrays: dict) -> AtlasReconstructor:
-        """Rebuild a fitted atlas from `state`; it can `remesh()` at once (no torch needed).
-        Its ``decomposition_`` holds ``labels_`` and ``spacing_`` only; ``mesh_`` comes with
-        the first `remesh`."""
-        from .pipeline import SurfaceReconstructor
-
-        self = cls(**meta["params"])
-        self.charts_ = [SurfaceReconstructor.from_state(chart, arrays, prefix=f"chart{i}_")
-                        for i, chart in enumerate(meta["charts"])]
-        for chart in self.charts_:  # a chart keeps the side its map gives (signs_ turn it),
-            chart.up = None  # also when saved before charts had the parameter
-        self.points_ = np.asarray(arrays["points"], float)
-        labels = np.asarray(arrays["labels"], np.int64)
-        offsets = np.asarray(arrays["chart_offsets"], np.int64)
-        flat = np.asarray(arrays["chart_points"], np.int64)
-        self.chart_points_ = [flat[a:b] for a, b in zip(offsets[:-1], offsets[1:], strict=True)]
-        self.signs_ = np.asarray(arrays["signs"], float)
-        self._chart_ids = [int(i) for i in meta["chart_ids"]]
-        n_charts = len(self.charts_)
-        if not (len(self.signs_) == len(self.chart_points_) == len(self._chart_ids) == n_charts
-                == len(arrays["shells"])
-                and labels.shape == (len(self.points_),) and self.points_.ndim == 2
-                and (len(flat) == 0 or 0 <= flat.min() and flat.max() < len(self.points_))):
-            raise ValueError("its charts, signs and points do not agree")
-        self.decomposition_ = ChartDecomposition(chart_size=self.chart_size,
-                                                 overlap=self.overlap)
-        self.decomposition_.labels_ = labels
-        self.decomposition_.spacing_ = float(meta["spacing"])
-        self.faults_ = [str(fault) for fault in meta["faults"]]
-        self.closed_, self.seal_ = bool(meta["closed"]), float(meta["seal"])
-        self.shells_ = np.asarray(arrays["shells"], bool)
-        # states written before thin parts were told apart have none
-        self.thin_ = (np.asarray(arrays["thin"], bool) if "thin" in arrays
-                      else np.zeros(n_charts, bool))
-        if self.thin_.shape != self.shells_.shape:
-            raise ValueError("its thin parts and shells do not agree")
-        self.timings_ = {}
-        if "join" in meta:  # the join's grid and last mesh: the first re-mesh is incremental
-            kind = ClosedSDF if meta["join"].get("kind") == "closed" else SparseSDF
-            self._sdf = kind.from_state(meta["join"], arrays, prefix="join_")
-            parts = parts_from_state(arrays, n_charts)  # with them, it skips charts at once
-            if parts is not None:
-                self._parts = parts
-        return self
+        """Rebuild a fitted atlas from `state`; it can `remesh()` at once (no torch needed;
+        `reconstruct.atlas_state.atlas_from_state`)."""
+        return atlas_from_state(cls, meta, arrays)
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write the fitted state (`state`) atomically to an .npz file."""

@@ -10,7 +10,10 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import time
 import warnings
+from concurrent.futures import wait as wait_for
+from typing import NamedTuple
 
 import numpy as np
 from joblib import effective_n_jobs
@@ -146,3 +149,39 @@ def fit_charts(clouds: list[np.ndarray], workers=None, **params) -> list[tuple]:
         if i not in results:
             results[i] = future.result()
     return [results[i] for i in range(len(clouds))]
+
+
+class BegunFit(NamedTuple):
+    """What `AtlasReconstructor.warm` / `start` began: the points and their charted subset
+    (None when only warmed), the worker pool, the decomposition's future (None when only
+    warmed) and the workers' torch imports (one future each)."""
+
+    points: object
+    charted: object
+    workers: object
+    decomposition: object
+    warming: list
+
+    def idle(self) -> tuple:
+        """(the pool, its number of workers) once they have imported torch and decomposed
+        the cloud if asked, or (None, 0)."""
+        if not all(  # done, and well: a failed import says the pool is not
+                f.done() and not f.cancelled() and f.exception() is None
+                for f in (self.decomposition, *self.warming) if f is not None):
+            return None, 0
+        return self.workers, len(self.warming)  # one import per worker
+
+    def stop(self) -> None:
+        """Wait for a decomposition, then stop the workers in their torch import (waiting for
+        it cost a 20k sphere cap's one-chart fit 2.2 s). Loky's `kill_workers` earlier than
+        that left a worker blocked sending its result, or its manager thread raised on an item
+        not yet dispatched."""
+        if self.decomposition is not None:
+            wait_for([self.decomposition])
+        deadline = time.monotonic() + 10.0
+        while not all(f.running() or f.done() for f in self.warming):  # dispatched, in a moment
+            if time.monotonic() > deadline:
+                self.workers.shutdown(wait=True)
+                return
+            time.sleep(0.005)
+        self.workers.shutdown(wait=True, kill_workers=True)

@@ -176,7 +176,7 @@ class AtlasReconstructor(BaseEstimator):
         workers = chart_workers(self.n_jobs, warm=False)
         if workers is not None:
             self._started = BegunFit(None, None, workers, None,
-                                   warm_up(workers, n_chart_workers(self.n_jobs)))
+                                     warm_up(workers, n_chart_workers(self.n_jobs)))
         return self
 
     def start(self, points) -> AtlasReconstructor:

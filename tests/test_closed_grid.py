@@ -7,7 +7,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from reconstruct.chart_sides import UnchartedTracker, uncharted_points
-from reconstruct.closed_grid import ClosedSDF, farther_than, squared_distance
+from reconstruct.closed_grid import BOX_SLACK, ClosedSDF, farther_than, squared_distance
 from reconstruct.join import implicit_mesh
 
 GRIDS = ["_occupied", "_free", "_exterior", "_closing", "_planes", "_nearest", "_ahead",
@@ -48,6 +48,28 @@ def test_an_update_equals_a_fresh_fit_and_evaluates_only_round_the_change(seal):
     assert grid.n_changed_ == 2 * dent.sum() + gone.sum() + 2
     assert 0 < grid.n_evaluated_ < 0.2 * fresh.n_evaluated_
     assert_same_grid(grid, fresh)
+
+
+def test_the_box_is_kept_while_the_samples_fit_in_it_and_saved_with_the_state():
+    samples, normals = torus_samples(2)
+    voxel = 0.05
+    grid = ClosedSDF(voxel=voxel).fit(samples, normals)
+    origin, shape = grid.origin_.copy(), grid.shape_.copy()
+    np.testing.assert_allclose(origin / voxel, np.round(origin / voxel), atol=1e-9)  # lattice
+    assert np.abs(grid.values_).min() >= 1e-3 * voxel  # kept off the level
+    saved = ClosedSDF.from_state(*grid.state())
+    far = np.argmax(samples[:, 0])  # the sample that bounds the box along x
+    moved = samples.copy()
+    moved[far, 0] += 1.5 * voxel  # out by less than the slack
+    grid.update(moved, normals)
+    assert np.array_equal(grid.origin_, origin) and np.array_equal(grid.shape_, shape)
+    assert grid.n_changed_ == 2 and 0 < grid.n_evaluated_ < 0.05 * grid.shape_.prod()
+    assert_same_grid(grid, saved.fit(moved, normals))  # a loaded grid fits on its saved box
+    moved = moved.copy()  # (the grid keeps the samples it was given)
+    moved[far, 0] += (BOX_SLACK + 1) * voxel  # out of the box: a fresh one
+    grid.update(moved, normals)
+    assert grid.shape_[0] > shape[0] and grid.n_evaluated_ > 0.05 * grid.shape_.prod()
+    assert_same_grid(grid, ClosedSDF(voxel=voxel).fit(moved, normals))
 
 
 def test_uncharted_points_and_a_gap_update_like_a_fresh_fit():

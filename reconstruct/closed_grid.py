@@ -27,7 +27,14 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from .marching import KeptMarch
-from .sdf_grid import changed_rows, imls, kept_mesh_arrays, lattice_box, restore_kept_mesh
+from .sdf_grid import (
+    QUERY_THREADS,
+    changed_rows,
+    imls,
+    kept_mesh_arrays,
+    lattice_box,
+    restore_kept_mesh,
+)
 
 #: Voxels from the nearest sample within which a closed join trusts the tangent planes alone.
 _TRUSTED = 1.0
@@ -169,7 +176,8 @@ def voter_sides(at, samples, normals, tree: cKDTree,
     """For the voters at ``at`` (g, 3): the distance (g,) to their nearest sample and whether
     they lie in front (g,) of its tangent plane and of those of the samples within
     `_VOTE_MARGIN` ``voxel`` of it."""
-    distance, nearest = tree.query(at, k=min(_VOTE_NEIGHBOURS, len(samples)))
+    distance, nearest = tree.query(at, k=min(_VOTE_NEIGHBOURS, len(samples)),
+                                   workers=QUERY_THREADS)
     distance, nearest = distance.reshape(len(at), -1), nearest.reshape(len(at), -1)
     ahead = np.einsum("gki,gki->gk", at[:, None, :] - samples[nearest],
                       np.asarray(normals, float)[nearest])
@@ -380,8 +388,8 @@ class ClosedSDF:
             return voter_sides(at, self.samples_, self.normals_, self.tree_, self.voxel)
         distance, front = self._voting[0].copy(), self._voting[1].copy()
         reach = distance + _VOTE_MARGIN * self.voxel
-        again = cKDTree(moved).query(at, distance_upper_bound=float(reach.max()) * (1 + 1e-9)
-                                     )[0] <= reach
+        again = cKDTree(moved).query(at, distance_upper_bound=float(reach.max()) * (1 + 1e-9),
+                                     workers=QUERY_THREADS)[0] <= reach
         if again.any():
             distance[again], front[again] = voter_sides(at[again], self.samples_,
                                                         self.normals_, self.tree_, self.voxel)
@@ -506,7 +514,8 @@ class ClosedSDF:
             eighth = self._eighth.flat[flat]
             pick = (eighth > _LOCAL * self.voxel) | marked[tuple((index // block).T)]
             gap = tree.query(self.origin_ + self.voxel * index[pick].astype(float),
-                             distance_upper_bound=self._reach * (1 + 1e-9))[0]
+                             distance_upper_bound=self._reach * (1 + 1e-9),
+                             workers=QUERY_THREADS)[0]
             candidates.append(flat[pick][gap <= eighth[pick]])
         arrived = flipped[~self._free.flat[flipped]]
         evaluated = np.unique(np.concatenate([arrived, *candidates]))

@@ -48,7 +48,12 @@ def imls(nodes, samples, normals, tree: cKDTree, voxel: float, return_index: boo
     k = min(IMLS_NEIGHBOURS, len(samples))
     d, index = tree.query(nodes, k=k, workers=QUERY_THREADS)
     d, index = d.reshape(len(nodes), k), index.reshape(len(nodes), k)
-    offsets = np.einsum("gki,gki->gk", nodes[:, None, :] - samples[index], normals[index])
+    # (node − sample) · normal, as node · normal − sample · normal: gathers of (q, k) from
+    # columns instead of (q, k, 3) rows (202,000 nodes: 96 → 26 ms)
+    plane = np.einsum("mi,mi->m", samples, normals)
+    offsets = -plane[index]
+    for axis in range(3):
+        offsets += np.ascontiguousarray(normals[:, axis])[index] * nodes[:, axis, None]
     weights = np.exp(-(d / (IMLS_WIDTH * voxel)) ** 2)
     values = (weights * offsets).sum(axis=1) / np.maximum(weights.sum(axis=1), 1e-300)
     return (values, d, index) if return_index else (values, d)

@@ -18,7 +18,11 @@ def dense(samples, normals, voxel, band, origin, shape):
     near = np.isfinite(distance)
     values = np.full(len(grid), voxel * (band + 1))
     d, index = tree.query(grid[near], k=8)
-    offsets = np.einsum("gki,gki->gk", grid[near][:, None, :] - samples[index], normals[index])
+    at = grid[near]  # (node − sample) · normal, summed as node · normal − sample · normal
+    plane = np.einsum("mi,mi->m", samples, normals)
+    offsets = -plane[index]
+    for axis in range(3):
+        offsets = offsets + normals[index, axis] * at[:, axis, None]
     weights = np.exp(-(d / (1.5 * voxel)) ** 2)
     values[near] = (weights * offsets).sum(axis=1) / weights.sum(axis=1)
     return values.reshape(shape), (distance <= band * voxel).reshape(shape)

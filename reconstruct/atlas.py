@@ -365,7 +365,7 @@ class AtlasReconstructor(BaseEstimator):
             kept_open.append(np.full(len(s), bool(far_face)))  # both faces of its shell
         samples, normals = np.concatenate(samples), np.concatenate(normals)
         kept_open = np.concatenate(kept_open)
-        uncharted = ((lambda tree: self._uncharted_tracker()(samples, tree))
+        uncharted = ((lambda tree, moved: self._uncharted_tracker()(samples, tree, moved))
                      if self.closed_ else None)
         self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim,
                                    closed=self.closed_, seal=self.seal_, uncharted=uncharted,

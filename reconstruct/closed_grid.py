@@ -287,14 +287,15 @@ class ClosedSDF:
     def fit(self, samples, normals, kept_open=None, uncharted=None) -> ClosedSDF:
         """samples, normals : (m, 3); kept_open : (m,) bool samples whose front the opening may
         not fill (`reconstruct.join.implicit_mesh`); uncharted : (p, 3) data points no chart
-        represents, or a callable of the samples' cKDTree giving them. The box fitted or
+        represents, or a callable of the samples' cKDTree and of the samples (q, 3) added
+        and removed since its last call (None: all are new) giving them. The box fitted or
         loaded last is kept if it holds the samples with the seal's pad. Returns self."""
         self._take(samples, normals, kept_open)
         seal, voxel = self._seal, self.voxel
         if not self._holds(self.samples_):
             self.origin_, self.shape_ = lattice_box(self.samples_, voxel, seal + 3 + BOX_SLACK)
         shape = tuple(int(n) for n in self.shape_)
-        extra = uncharted(self.tree_) if callable(uncharted) else uncharted
+        extra = uncharted(self.tree_, None) if callable(uncharted) else uncharted
         self._occupied = occupancy(self.samples_, extra, self.origin_, self.shape_, voxel)
         self._free = farther_than(self._occupied, seal)
         self._pockets = free_pockets(self._free)
@@ -334,7 +335,7 @@ class ClosedSDF:
             self.n_changed_ = changed
             return self
         moved = np.concatenate([self.samples_[added], old[removed]])
-        extra = uncharted(self.tree_) if callable(uncharted) else uncharted
+        extra = uncharted(self.tree_, moved) if callable(uncharted) else uncharted
         occupied = occupancy(self.samples_, extra, self.origin_, self.shape_, self.voxel)
         cells = np.flatnonzero(occupied != self._occupied)
         self._occupied = occupied

@@ -336,8 +336,8 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     between the samples narrower than twice this are capped;
     uncharted : (p, 3) data points no chart's samples represent (a junction the charts left
     out): in a closed join they occupy the grid like samples, so the cap across their gap
-    passes by them (or a callable of the samples' cKDTree giving them, called only when the
-    grid is built);
+    passes by them (or a callable of the samples' cKDTree and of the samples added and removed
+    since its last call, None when the grid is built afresh, giving them);
     grid : a `SparseSDF` (open) or `reconstruct.closed_grid.ClosedSDF` (closed) kept between
     calls: the grid is re-evaluated only round the samples that changed since, and the same
     samples give back the same mesh at once (then its ``hit_`` is True); one of the other kind

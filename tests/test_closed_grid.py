@@ -79,7 +79,7 @@ def test_uncharted_points_and_a_gap_update_like_a_fresh_fit():
     grid = ClosedSDF(voxel=0.05).fit(samples[~slit], normals[~slit], uncharted=extra)
     refill = slit & (samples[:, 0] < 0)  # the other side's samples come back
     keep = ~slit | refill
-    grid.update(samples[keep], normals[keep], uncharted=lambda tree: extra[:-3])
+    grid.update(samples[keep], normals[keep], uncharted=lambda tree, moved: extra[:-3])
     fresh = ClosedSDF(voxel=0.05).fit(samples[keep], normals[keep], uncharted=extra[:-3])
     assert grid.n_changed_ == refill.sum()
     assert_same_grid(grid, fresh)
@@ -156,12 +156,23 @@ def test_the_uncharted_tracker_finds_what_a_fresh_look_finds():
     points = np.concatenate([samples[::3], samples[:40] * 1.3, rng.normal(size=(5, 3)) * 3])
     tracker = UnchartedTracker(points, spacing)
     steps = [samples, samples[:-300], np.concatenate([samples[:500], samples[700:]]),
-             np.concatenate([samples[:500], samples[700:] + 0.02]), samples[::2], samples]
-    sizes = []
+             np.concatenate([samples[:500], samples[700:900] + 0.02, samples[900:]]),
+             samples[::2], samples]
+    sizes, before, looked_round = [], None, 0
     for step, now in enumerate(steps):
         tree = cKDTree(now)
         expected = uncharted_points(points, now, spacing, tree)
-        found = tracker(now, tree)
+        moved = None if before is None else _rows_not_in_both(before, now)
+        looked_round += moved is not None and 0 < len(moved) <= 0.25 * len(now)
+        found = tracker(now, tree, moved)
         assert np.array_equal(found, expected), step
         sizes.append(len(found))
+        before = now
     assert len(set(sizes)) >= 3, sizes  # the changes do change what is uncharted
+    assert looked_round == 3  # three steps looked up only the points round the moved samples
+
+
+def _rows_not_in_both(old, new):
+    """The rows (q, 3) of ``old`` or ``new`` that the other does not have."""
+    a, b = {tuple(r) for r in old}, {tuple(r) for r in new}
+    return np.array(sorted(a ^ b), float).reshape(-1, 3)

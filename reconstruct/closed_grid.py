@@ -6,7 +6,7 @@ A closed join (`reconstruct.join.implicit_mesh`) signs every node of a grid roun
 2. *free*: the nodes farther than the seal from every occupied cell (a distance transform);
 3. *exterior*: the free nodes connected to the grid's border, or in an enclosed pocket that the
    nearest samples' tangent planes mostly put in front, unless nearly as near samples' planes
-   put it behind (`exterior_of`, `_VOTE_MARGIN`);
+   put it behind (`reconstruct.grid_steps.exterior_of`, ``VOTE_MARGIN``);
 4. the *closing* of the samples by the seal (Serra 1982): seal voxels in from the exterior, so
    a gap between charts narrower than twice the seal is capped near its data;
 5. near the samples (the nodes not free) the implicit moving-least-squares distance of their
@@ -14,10 +14,11 @@ A closed join (`reconstruct.join.implicit_mesh`) signs every node of a grid roun
 6. a grey opening and a Gaussian smoothing (`_OPEN`, `_SMOOTH`).
 
 Steps 1 and 3 look at the whole grid; the others are local, each within a known number of
-voxels. `ClosedSDF.update` redoes 1 and 3 over the grid (cheap: a rounding, a labelling and a
-vote) and the local steps in boxes round what changed, wide enough that the result equals a
-fresh `ClosedSDF.fit` node for node (tested). A re-mesh that moves two samples of a torus's
-21,000 re-evaluated its whole grid before (0.9–1.5 s of a 1.1–1.7 s re-mesh).
+voxels (the steps on whole grids or boxes of them are `reconstruct.grid_steps`).
+`ClosedSDF.update` redoes 1 and 3 over the grid (cheap: a rounding, a labelling and a vote) and
+the local steps in boxes round what changed, wide enough that the result equals a fresh
+`ClosedSDF.fit` node for node (tested). A re-mesh that moves two samples of a torus's 21,000
+re-evaluated its whole grid before (0.9–1.5 s of a 1.1–1.7 s re-mesh).
 """
 
 from __future__ import annotations
@@ -26,6 +27,18 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from .grid_steps import (
+    VOTE_MARGIN,
+    boxes_round,
+    farther_than,
+    flat_of,
+    free_pockets,
+    grown,
+    occupancy,
+    pockets_outside,
+    squared_distance,
+    voter_sides,
+)
 from .marching import KeptMarch
 from .sdf_grid import (
     QUERY_THREADS,
@@ -55,19 +68,6 @@ _SMOOTH = 0.8
 #: Voxels of the smoothed grid a change of the blended one reaches: the opening's erosion and
 #: dilation, then the Gaussian's radius (scipy's: truncate 4 · σ, rounded).
 _SMOOTH_REACH = 2 * (_OPEN // 2) + int(4.0 * _SMOOTH + 0.5)
-#: Nodes of one enclosed pocket that vote on its side (`exterior_of`), evenly taken: its share
-#: in front to about ±1 %. All of a torus's inside (181,604 nodes) took 0.8 s of a 1.9 s re-mesh.
-_VOTERS = 4096
-#: A voter of an enclosed pocket is in front when the planes of its nearest sample and of every
-#: sample within this many voxels farther (of its `_VOTE_NEIGHBOURS` nearest) put it there: a
-#: chart spanning a junction (mug 20k seed 1: the wall's across the handle's upper root, facing
-#: +x) is nearest to the free core of the handle there, 3.1-3.4 voxels in front of it, while
-#: the handle's faces 0.6-0.8 voxels farther put it 3.3-4 voxels behind theirs. The nearest
-#: alone voted that core outside, the closing turned the root's cross-section outside and
-#: the handle was cut (Euler 2 against 0); with this, 0 (0.5 voxel or 8 neighbours: still 2).
-#: bench.atlas 20k seed 0 unchanged but for sheets (Chamfer 0.5064 / 0.5069).
-_VOTE_MARGIN = 1.0
-_VOTE_NEIGHBOURS = 16
 #: An update that changes more than this share of the samples is a fresh fit.
 _MOST = 0.25
 #: Voxels by which the smoothed grid stays off the level: a value nearer it is set to this far,
@@ -86,166 +86,6 @@ _LOCAL = 4.0
 #: fitted tightly round the samples and made every such re-mesh a fresh fit (hook 22k: 4 of 4
 #: re-meshes, about 202,700 nodes' planes and 0.6-1.1 s of its join; now about 10,000 nodes).
 BOX_SLACK = 2
-
-
-def squared_distance(targets: np.ndarray, radius: float) -> np.ndarray:
-    """(shape) int32: each node's squared Euclidean distance, in nodes, to the nearest True
-    node of ``targets``, exact where it is at most ``radius``² and above it (not exact)
-    elsewhere. Three separable passes of minima over the shifts of up to ⌊radius⌋ nodes (no
-    farther shift along one axis can be within ``radius``). scipy's exact transform of the
-    whole grid, ``distance_transform_edt(~targets)``, gives the same within ``radius``; the
-    join only needs it within a few voxels, and this took a fifth to a third of its time on a
-    7-million-node grid (radius 3 and 6)."""
-    reach = int(np.floor(radius))
-    far = np.int32(3 * (reach + 1) ** 2)  # farther than radius² and than any sum of in-range
-    squared = np.where(targets, np.int32(0), far)
-    for axis in range(squared.ndim):
-        nearest = squared.copy()
-        for shift in range(1, min(reach, squared.shape[axis] - 1) + 1):
-            low, high = [slice(None)] * squared.ndim, [slice(None)] * squared.ndim
-            low[axis], high[axis] = slice(0, -shift), slice(shift, None)
-            low, high = tuple(low), tuple(high)
-            np.minimum(nearest[high], squared[low] + shift * shift, out=nearest[high])
-            np.minimum(nearest[low], squared[high] + shift * shift, out=nearest[low])
-        squared = nearest
-    return squared
-
-
-def farther_than(targets: np.ndarray, radius: float) -> np.ndarray:
-    """(shape) bool: the nodes farther than ``radius`` nodes from every True node of
-    ``targets``, as ``distance_transform_edt(~targets) > radius`` says (the same square roots
-    compared)."""
-    limit = int(np.floor(radius * radius))  # the largest whole n with √n ≤ radius
-    while np.sqrt(limit + 1) <= radius:
-        limit += 1
-    while limit >= 0 and np.sqrt(limit) > radius:
-        limit -= 1
-    return squared_distance(targets, radius) > limit
-
-
-def grid_box(samples: np.ndarray, voxel: float, pad: float):
-    """Origin (3,) and shape (3,) of a grid of spacing ``voxel`` round ``samples`` (m, 3)."""
-    origin = samples.min(axis=0) - pad * voxel
-    shape = np.ceil((samples.max(axis=0) + pad * voxel - origin) / voxel).astype(int) + 1
-    return origin, shape
-
-
-def occupancy(samples, extra, origin, shape, voxel: float) -> np.ndarray:
-    """(shape) bool: the grid's cells holding a sample (m, 3) or an ``extra`` point (p, 3;
-    those outside the grid ignored)."""
-    occupied = np.zeros(tuple(shape), bool)
-    occupied[tuple(np.floor((samples - origin) / voxel + 0.5).astype(int).T)] = True
-    if extra is not None and len(extra):
-        nodes = np.floor((np.asarray(extra, float) - origin) / voxel + 0.5).astype(int)
-        occupied[tuple(nodes[np.all((nodes >= 0) & (nodes < shape), axis=1)].T)] = True
-    return occupied
-
-
-def exterior_of(free, origin, voxel: float, samples=None, normals=None, tree=None):
-    """(shape) bool: the ``free`` nodes outside the sampled surface.
-
-    The free nodes connected to the grid's border are exterior. A free pocket enclosed by the
-    samples (the inside of a closed object, or a concave nook the band closed off) is exterior
-    when the nearest samples' tangent planes, oriented by ``normals`` (m, 3), put most of its
-    nodes in front (without normals: never). ``tree``: a cKDTree of ``samples`` (m, 3)."""
-    pockets = free_pockets(free)
-    front = None
-    if normals is not None and pockets[2] is not None:
-        tree = cKDTree(samples) if tree is None else tree
-        front = voter_sides(origin + voxel * pockets[2][0], samples, normals, tree, voxel)[1]
-    return pockets_outside(pockets, front)[pockets[0]] & free
-
-
-def free_pockets(free: np.ndarray) -> tuple:
-    """The connected pieces of the ``free`` nodes: (pieces (shape) int, whether each piece
-    (count + 1,; 0: none) touches the grid's border, voters: (nodes (g, 3), piece (g,)) of the
-    enclosed pieces (`_voters`), or None)."""
-    pieces, count = ndimage.label(free)
-    faces = [pieces[0], pieces[-1], pieces[:, 0], pieces[:, -1], pieces[:, :, 0],
-             pieces[:, :, -1]]
-    border = np.zeros(count + 1, bool)
-    border[np.concatenate([f.ravel() for f in faces])] = True
-    border[0] = False
-    enclosed = free & ~border[pieces] if count else np.zeros(free.shape, bool)
-    voters = _voters(np.argwhere(enclosed), pieces[enclosed]) if enclosed.any() else None
-    return pieces, border, voters
-
-
-def voter_sides(at, samples, normals, tree: cKDTree,
-                voxel: float) -> tuple[np.ndarray, np.ndarray]:
-    """For the voters at ``at`` (g, 3): the distance (g,) to their nearest sample and whether
-    they lie in front (g,) of its tangent plane and of those of the samples within
-    `_VOTE_MARGIN` ``voxel`` of it."""
-    distance, nearest = tree.query(at, k=min(_VOTE_NEIGHBOURS, len(samples)),
-                                   workers=QUERY_THREADS)
-    distance, nearest = distance.reshape(len(at), -1), nearest.reshape(len(at), -1)
-    ahead = np.einsum("gki,gki->gk", at[:, None, :] - samples[nearest],
-                      np.asarray(normals, float)[nearest])
-    near = distance <= distance[:, :1] + _VOTE_MARGIN * voxel
-    return distance[:, 0], np.all((ahead > 0) | ~near, axis=1)
-
-
-def pockets_outside(pockets: tuple, front=None) -> np.ndarray:
-    """(count + 1,) bool: which of the `free_pockets` are outside: those touching the border,
-    and the enclosed ones whose voters mostly lie in ``front`` (g,) of their nearest samples
-    (`voter_sides`; None: no enclosed one)."""
-    _, border, voters = pockets
-    if front is None or voters is None:
-        return border.copy()
-    label = voters[1]
-    share = np.bincount(label, front, minlength=len(border)) / np.maximum(
-        np.bincount(label, minlength=len(border)), 1)
-    return border | (share > 0.5)
-
-
-def _voters(nodes: np.ndarray, label: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """At most `_VOTERS` of the ``nodes`` (g, 3) of each pocket ``label`` (g,), every k-th in
-    grid order; returns (nodes, label) of those."""
-    counts = np.bincount(label)
-    order = np.argsort(label, kind="stable")
-    first = np.cumsum(counts) - counts
-    rank = np.arange(len(order)) - first[label[order]]
-    step = -(-counts // _VOTERS)
-    keep = order[rank % step[label[order]] == 0]
-    keep.sort()
-    return nodes[keep], label[keep]
-
-
-def _boxes(flat: np.ndarray, shape, margin: int) -> list[tuple[slice, ...]]:
-    """Boxes (3 slices each) covering the grid nodes ``flat`` grown by ``margin`` voxels and
-    clipped to the grid ``shape``: one per cluster of nodes in touching blocks of 2 ``margin``
-    voxels."""
-    if len(flat) == 0:
-        return []
-    cells = np.column_stack(np.unravel_index(flat, tuple(shape)))
-    coarse = cells // (2 * max(int(margin), 1))
-    blocks = np.zeros(tuple(coarse.max(axis=0) + 1), bool)
-    blocks[tuple(coarse.T)] = True
-    pieces, count = ndimage.label(blocks, structure=np.ones((3, 3, 3), bool))
-    piece = pieces[tuple(coarse.T)] - 1
-    low = np.full((count, 3), np.iinfo(np.int64).max)
-    high = np.full((count, 3), -1)
-    np.minimum.at(low, piece, cells)
-    np.maximum.at(high, piece, cells)
-    low = np.maximum(low - margin, 0)
-    high = np.minimum(high + margin + 1, np.asarray(shape))
-    return [tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
-            for lo, hi in zip(low, high, strict=True)]
-
-
-def _grown(box: tuple[slice, ...], margin: int, shape) -> tuple[tuple[slice, ...], tuple]:
-    """``box`` grown by ``margin`` (clipped to ``shape``), and ``box`` within the grown one."""
-    outer = tuple(slice(max(s.start - margin, 0), min(s.stop + margin, int(n)))
-                  for s, n in zip(box, shape, strict=True))
-    inner = tuple(slice(s.start - o.start, s.stop - o.start)
-                  for s, o in zip(box, outer, strict=True))
-    return outer, inner
-
-
-def _flat_of(box: tuple[slice, ...], mask: np.ndarray, shape) -> np.ndarray:
-    """Flat grid indices of the nodes of ``box`` where ``mask`` (the box's shape) holds."""
-    local = np.argwhere(mask) + np.array([s.start for s in box])
-    return np.ravel_multi_index(tuple(local.T), tuple(shape))
 
 
 class ClosedSDF:
@@ -379,7 +219,7 @@ class ClosedSDF:
 
     def _vote(self, moved=None) -> tuple:
         """`voter_sides` of the pockets' voters (None, None without any): all, or with
-        ``moved`` samples (q, 3) again only the voters a moved one is within `_VOTE_MARGIN`
+        ``moved`` samples (q, 3) again only the voters a moved one is within `VOTE_MARGIN`
         voxels of as near as their nearest was (the samples that vote may have changed)."""
         voters = self._pockets[2]
         if voters is None:
@@ -388,7 +228,7 @@ class ClosedSDF:
         if moved is None or self._voting[0] is None:
             return voter_sides(at, self.samples_, self.normals_, self.tree_, self.voxel)
         distance, front = self._voting[0].copy(), self._voting[1].copy()
-        reach = distance + _VOTE_MARGIN * self.voxel
+        reach = distance + VOTE_MARGIN * self.voxel
         again = cKDTree(moved).query(at, distance_upper_bound=float(reach.max()) * (1 + 1e-9),
                                      workers=QUERY_THREADS)[0] <= reach
         if again.any():
@@ -466,12 +306,12 @@ class ClosedSDF:
         of the nodes whose freedom flipped."""
         reach = int(np.ceil(self._seal)) + 1
         flipped = []
-        for box in _boxes(cells, self.shape_, reach):
-            outer, inner = _grown(box, reach, self.shape_)
+        for box in boxes_round(cells, self.shape_, reach):
+            outer, inner = grown(box, reach, self.shape_)
             occupied = self._occupied[outer]
             free = (farther_than(occupied, self._seal) if occupied.any()
                     else np.ones(occupied.shape, bool))[inner]
-            flipped.append(_flat_of(box, free != self._free[box], self.shape_))
+            flipped.append(flat_of(box, free != self._free[box], self.shape_))
             self._free[box] = free
         return np.unique(np.concatenate(flipped)) if flipped else np.zeros(0, np.int64)
 
@@ -481,10 +321,10 @@ class ClosedSDF:
         self._exterior = exterior
         reach = int(np.ceil(self._seal + self.band + 1)) + 1  # beyond it the closing is clipped
         touched = []
-        for box in _boxes(changed, self.shape_, reach):
-            outer, inner = _grown(box, reach, self.shape_)
+        for box in boxes_round(changed, self.shape_, reach):
+            outer, inner = grown(box, reach, self.shape_)
             closing = self._closing_of(exterior[outer])[inner]
-            touched.append(_flat_of(box, closing != self._closing[box], self.shape_))
+            touched.append(flat_of(box, closing != self._closing[box], self.shape_))
             self._closing[box] = closing
         return np.unique(np.concatenate(touched)) if touched else np.zeros(0, np.int64)
 
@@ -507,10 +347,10 @@ class ClosedSDF:
         reach = int(np.ceil(self._reach / self.voxel)) + 1
         candidates = []
         tree = cKDTree(moved)
-        for box in _boxes(np.ravel_multi_index(tuple(cells.T), tuple(self.shape_)),
+        for box in boxes_round(np.ravel_multi_index(tuple(cells.T), tuple(self.shape_)),
                           self.shape_, reach):
             near = ~self._free[box] & (self._eighth[box] > 0)  # near before and after
-            flat = _flat_of(box, near, self.shape_)
+            flat = flat_of(box, near, self.shape_)
             index = np.column_stack(np.unravel_index(flat, tuple(self.shape_)))
             eighth = self._eighth.flat[flat]
             pick = (eighth > _LOCAL * self.voxel) | marked[tuple((index // block).T)]
@@ -527,8 +367,8 @@ class ClosedSDF:
     def _update_smoothed(self, touched: np.ndarray) -> None:
         """Smooth again round the nodes of the blended grid that changed (``touched``)."""
         reach = _SMOOTH_REACH
-        for box in _boxes(touched, self.shape_, reach):
-            outer, inner = _grown(box, reach, self.shape_)
+        for box in boxes_round(touched, self.shape_, reach):
+            outer, inner = grown(box, reach, self.shape_)
             self.values_[box] = self._smoothed(self._values[outer], self._holding(outer))[inner]
 
     def march(self) -> tuple[np.ndarray, np.ndarray]:

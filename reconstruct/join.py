@@ -40,8 +40,9 @@ from scipy.sparse.csgraph import (
 )
 from scipy.spatial import cKDTree
 
-from .closed_grid import ClosedSDF, exterior_of, farther_than, grid_box, occupancy
+from .closed_grid import ClosedSDF
 from .errors import InvalidInputError
+from .grid_steps import exterior_of, farther_than, grid_box, occupancy
 from .mesh_edges import (
     close_small_holes,
     edge_runs,
@@ -234,7 +235,7 @@ def exterior_grid(samples, voxel: float, band: float = 3.0, normals=None, pad=No
 
     A node farther than ``band`` voxels from every sample is *free*; the free nodes connected
     to the grid's border are exterior, and so is a pocket the samples' tangent planes, oriented
-    by ``normals`` (m, 3), mostly put in front (`reconstruct.closed_grid.exterior_of`).
+    by ``normals`` (m, 3), mostly put in front (`reconstruct.grid_steps.exterior_of`).
     ``extra`` (p, 3): points that occupy the grid like samples (data no chart represents),
     outside the grid ignored. Returns origin (3,), shape (3,), exterior and free, bool arrays
     of ``shape``."""

@@ -7,7 +7,8 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from reconstruct.chart_sides import UnchartedTracker, uncharted_points
-from reconstruct.closed_grid import BOX_SLACK, ClosedSDF, farther_than, squared_distance
+from reconstruct.closed_grid import BOX_SLACK, ClosedSDF
+from reconstruct.grid_steps import farther_than, squared_distance, voter_sides
 from reconstruct.join import implicit_mesh
 
 GRIDS = ["_occupied", "_free", "_exterior", "_closing", "_planes", "_nearest", "_ahead",
@@ -110,7 +111,6 @@ def test_the_same_samples_in_another_order_change_nothing_and_a_saved_grid_refit
 def test_a_pocket_voter_is_in_front_only_if_the_nearly_as_near_samples_agree():
     from scipy.spatial import cKDTree
 
-    from reconstruct.closed_grid import voter_sides
 
     voter = np.zeros((1, 3))
     for other, expected in ((1.5, False), (2.5, True)):  # within a voxel farther, or beyond

@@ -4,7 +4,7 @@ between its charts, open data left open (reconstruct.join)."""
 import numpy as np
 import trimesh
 
-from reconstruct.closed_grid import _VOTERS, _voters
+from reconstruct.grid_steps import VOTERS, pocket_voters
 from reconstruct.join import (
     ExteriorProbe,
     exterior_votes,
@@ -174,12 +174,12 @@ def test_data_no_chart_represents_keeps_a_closed_join_whole():
 
 def test_a_large_pocket_votes_through_an_even_subset_of_its_nodes():
     rng = np.random.default_rng(0)
-    label = rng.permutation(np.repeat([1, 2, 3], [10, 3 * _VOTERS + 5, 3]))
+    label = rng.permutation(np.repeat([1, 2, 3], [10, 3 * VOTERS + 5, 3]))
     nodes = np.arange(len(label))[:, None].repeat(3, axis=1)
-    kept, kept_label = _voters(nodes, label)
+    kept, kept_label = pocket_voters(nodes, label)
     counts = np.bincount(kept_label, minlength=4)
     assert counts[1] == 10 and counts[3] == 3  # small pockets: every node
-    assert _VOTERS // 2 < counts[2] <= _VOTERS
+    assert VOTERS // 2 < counts[2] <= VOTERS
     assert np.all(np.diff(kept[:, 0]) > 0)
     np.testing.assert_array_equal(label[kept[:, 0]], kept_label)
 

@@ -63,6 +63,7 @@ from .join import (
     thin_shell,
     vertex_normals,
 )
+from .join_alignment import steady_join
 from .mesh_edges import topology, turn_faces
 from .sdf_grid import SparseSDF
 from .sheet_graph import SheetGraph
@@ -367,10 +368,18 @@ class AtlasReconstructor(BaseEstimator):
         kept_open = np.concatenate(kept_open)
         uncharted = ((lambda tree, moved: self._uncharted_tracker()(samples, tree, moved))
                      if self.closed_ else None)
-        self.mesh_ = implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim,
-                                   closed=self.closed_, seal=self.seal_, uncharted=uncharted,
-                                   grid=self._join_grid(voxel),
-                                   kept_open=kept_open if kept_open.any() else None)
+        kept_open = kept_open if kept_open.any() else None
+
+        def join(grid):
+            return implicit_mesh(samples, normals, voxel, band=self.band, trim=self.trim,
+                                 closed=self.closed_, seal=self.seal_, uncharted=uncharted,
+                                 grid=grid, kept_open=kept_open), grid
+        self.mesh_, _ = join(self._join_grid(voxel))
+        if decide and self.closed_:  # a topology that depends on where the grid falls
+            self.mesh_, self._sdf, _, note = steady_join(
+                self.mesh_, self._sdf, lambda shift: join(ClosedSDF(voxel, shift=shift)))
+            if note:
+                warnings.warn(note, ReconstructionWarning, stacklevel=3)
         if decide:
             self.__dict__.pop("_seen_side", None)
         if not self.closed_ and self.up is not None:

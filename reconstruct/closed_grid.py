@@ -95,7 +95,8 @@ class ClosedSDF:
     Parameters: ``voxel`` grid spacing; ``band`` the planes' distance is clipped to ``band + 1``
     voxels by the closing; ``seal`` voxels (gaps narrower than twice this are capped; default
     ``band``); ``tolerance`` how far (input units; default 1e-9 voxels) a sample or normal may
-    move and still count as the same in `update`.
+    move and still count as the same in `update`; ``shift`` voxels by which the lattice is
+    moved along every axis (a topology that depends on it: `reconstruct.atlas`).
 
     Fitted attributes: ``origin_`` (3,), ``shape_`` (3,), ``values_`` (shape) the smoothed
     signed grid (positive outside) for marching cubes, ``samples_`` (m, 3), ``normals_``
@@ -104,15 +105,16 @@ class ClosedSDF:
     """
 
     def __init__(self, voxel: float, band: float = 3.0, seal: float | None = None,
-                 tolerance: float | None = None):
+                 tolerance: float | None = None, shift: float = 0.0):
         self.voxel = voxel
         self.band = band
         self.seal = seal
         self.tolerance = tolerance
+        self.shift = shift
 
     @property
     def _params(self) -> tuple:
-        return self.voxel, self.band, self.seal, self.tolerance
+        return self.voxel, self.band, self.seal, self.tolerance, self.shift
 
     @property
     def _seal(self) -> float:
@@ -133,7 +135,10 @@ class ClosedSDF:
         self._take(samples, normals, kept_open)
         seal, voxel = self._seal, self.voxel
         if not self._holds(self.samples_):
-            self.origin_, self.shape_ = lattice_box(self.samples_, voxel, seal + 3 + BOX_SLACK)
+            shift = self.shift % 1.0  # the low side spares a voxel more when shifted
+            origin, self.shape_ = lattice_box(self.samples_, voxel,
+                                              seal + 3 + BOX_SLACK + (shift > 0))
+            self.origin_ = origin + shift * voxel
         shape = tuple(int(n) for n in self.shape_)
         extra = uncharted(self.tree_, None) if callable(uncharted) else uncharted
         self._occupied = occupancy(self.samples_, extra, self.origin_, self.shape_, voxel)
@@ -386,7 +391,8 @@ class ClosedSDF:
         evaluates afresh, on the same box, for others (the whole grid would be several times
         the atlas's size)."""
         meta = {"kind": "closed", "params": {"voxel": self.voxel, "band": self.band,
-                                             "seal": self.seal, "tolerance": self.tolerance},
+                                             "seal": self.seal, "tolerance": self.tolerance,
+                                             "shift": self.shift},
                 "mesh_key": list(getattr(self, "mesh_key_", []))}
         arrays = {"samples": self.samples_, "normals": self.normals_,
                   "kept_open": self.kept_open_, **kept_mesh_arrays(self)}

@@ -71,6 +71,9 @@ def test_the_box_is_kept_while_the_samples_fit_in_it_and_saved_with_the_state():
     grid.update(moved, normals)
     assert grid.shape_[0] > shape[0] and grid.n_evaluated_ > 0.05 * grid.shape_.prod()
     assert_same_grid(grid, ClosedSDF(voxel=voxel).fit(moved, normals))
+    shifted = ClosedSDF(voxel=voxel, shift=0.5).fit(samples, normals)  # half a voxel off
+    np.testing.assert_allclose((shifted.origin_ - origin) / voxel % 1, 0.5, atol=1e-9)
+    assert ClosedSDF.from_state(*shifted.state()).shift == 0.5
 
 
 def test_uncharted_points_and_a_gap_update_like_a_fresh_fit():

@@ -207,10 +207,12 @@ class ClosedSDF:
 
     # -- the steps -----------------------------------------------------------------------------
     def _take(self, samples, normals, kept_open) -> None:
-        self.samples_ = np.ascontiguousarray(samples, float)
-        self.normals_ = np.ascontiguousarray(normals, float)
+        """Keep copies of the arrays (an `update` compares the next ones with them: a caller's
+        array changed in place would hide its change)."""
+        self.samples_ = np.array(samples, float, order="C")
+        self.normals_ = np.array(normals, float, order="C")
         self.kept_open_ = (np.zeros(len(self.samples_), bool) if kept_open is None
-                           else np.asarray(kept_open, bool))
+                           else np.array(kept_open, bool))
         self.tree_ = cKDTree(self.samples_)
 
     def _holds(self, samples: np.ndarray) -> bool:

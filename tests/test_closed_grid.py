@@ -66,8 +66,7 @@ def test_the_box_is_kept_while_the_samples_fit_in_it_and_saved_with_the_state():
     assert np.array_equal(grid.origin_, origin) and np.array_equal(grid.shape_, shape)
     assert grid.n_changed_ == 2 and 0 < grid.n_evaluated_ < 0.05 * grid.shape_.prod()
     assert_same_grid(grid, saved.fit(moved, normals))  # a loaded grid fits on its saved box
-    moved = moved.copy()  # (the grid keeps the samples it was given)
-    moved[far, 0] += (BOX_SLACK + 1) * voxel  # out of the box: a fresh one
+    moved[far, 0] += (BOX_SLACK + 1) * voxel  # (in place: the grid kept a copy) out of the box
     grid.update(moved, normals)
     assert grid.shape_[0] > shape[0] and grid.n_evaluated_ > 0.05 * grid.shape_.prod()
     assert_same_grid(grid, ClosedSDF(voxel=voxel).fit(moved, normals))

@@ -255,7 +255,7 @@ class AtlasReconstructor(BaseEstimator):
         self.charts_ = [fitted[i][0] for i in order]
         self.chart_points_ = [fitted[i][1] for i in order]
         self._chart_ids = order
-        for name in ("_owners", "_parts"):
+        for name in ("_owners", "_parts", "_sdf"):  # a fit's join starts afresh
             self.__dict__.pop(name, None)
         self.timings_["fits"] = time.perf_counter() - started - self.timings_["charts"]
         self.signs_ = orient_charts([c.mesh_ for c in self.charts_], self.chart_points_, points)

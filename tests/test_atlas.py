@@ -60,6 +60,15 @@ def test_a_closed_cloud_gives_a_closed_mesh_of_its_genus(sphere_atlas):
     assert report["denoise_ratio"] < 0.7
 
 
+def test_a_second_fit_gives_what_a_fresh_atlas_gives(sphere_atlas):
+    points, fresh = sphere_atlas
+    atlas = AtlasReconstructor(chart_size=1000).fit(1.05 * points)  # its grid's box holds both
+    first_grid = atlas._sdf
+    atlas.fit(points)
+    assert atlas._sdf is not first_grid  # no box, lattice shift or grid kept from the first
+    np.testing.assert_array_equal(atlas.mesh_.vertices, fresh.mesh_.vertices)
+
+
 def test_every_chart_is_faithful_or_said(sphere_atlas):
     _, atlas = sphere_atlas
     for chart in atlas.charts_:

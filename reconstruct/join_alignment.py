@@ -1,7 +1,7 @@
 """A closed join's topology, checked against where its grid falls.
 
-A junction about as thin as a voxel (a mug's handle root, which the wall's chart spans) can come
-out whole, cut, or with an extra tunnel depending on where the nodes of the closed join's grid
+A junction the closed join's grid barely resolves (a mug's handle root, which the wall's chart
+spans) can come out whole, cut, or with an extra tunnel depending on where the grid's nodes
 fall. Mug 20k at σ 0.5 %, seed 1: Euler characteristic −2 / 0 / 0 / 2 (the object's: 0) with
 the lattice shifted by 0 / ¼ / ½ / ¾ voxel; seed 2: 0 / 0 / 0 / −4; seed 3: 0 at all four.
 Seeds 0-5 on the unshifted lattice: the object's at 5 of 6; on the grid the join used before
@@ -43,6 +43,7 @@ def steady_join(mesh, grid, join: Callable[[float], tuple]) -> tuple:
     shifts = " / ".join(f"{s:g}" for s in SHIFTS[:len(made)])
     return (*kept, f"the closed mesh's topology depends on where the join's grid falls (Euler "
                    f"characteristic {' / '.join(map(str, eulers))} with the grid shifted by "
-                   f"{shifts} voxel): a part is about as thin as a voxel there; kept "
-                   f"{kept[2][2]}{' (the most frequent)' if most > 1 else ''}; a smaller "
-                   "voxel may resolve it")
+                   f"{shifts} voxel): the grid does not resolve some part or junction "
+                   f"reliably; kept {kept[2][2]}"
+                   f"{' (the most frequent)' if most > 1 else ''}; a smaller voxel may "
+                   "resolve it")

@@ -96,7 +96,7 @@ class ClosedSDF:
     voxels by the closing; ``seal`` voxels (gaps narrower than twice this are capped; default
     ``band``); ``tolerance`` how far (input units; default 1e-9 voxels) a sample or normal may
     move and still count as the same in `update`; ``shift`` voxels by which the lattice is
-    moved along every axis (a topology that depends on it: `reconstruct.atlas`).
+    moved along every axis (a topology that depends on it: `reconstruct.join_alignment`).
 
     Fitted attributes: ``origin_`` (3,), ``shape_`` (3,), ``values_`` (shape) the smoothed
     signed grid (positive outside) for marching cubes, ``samples_`` (m, 3), ``normals_``
@@ -133,6 +133,10 @@ class ClosedSDF:
         and removed since its last call (None: all are new) giving them. The box fitted or
         loaded last is kept if it holds the samples with the seal's pad. Returns self."""
         self._take(samples, normals, kept_open)
+        return self._fit_taken(uncharted)
+
+    def _fit_taken(self, uncharted) -> ClosedSDF:
+        """`fit` to the samples `_take` kept."""
         seal, voxel = self._seal, self.voxel
         if not self._holds(self.samples_):
             shift = self.shift % 1.0  # the low side spares a voxel more when shifted
@@ -176,7 +180,7 @@ class ClosedSDF:
             return self
         if (not hasattr(self, "_occupied") or changed > _MOST * (len(old) + len(samples))
                 or not self._holds(self.samples_)):
-            self.fit(self.samples_, self.normals_, self.kept_open_, uncharted)
+            self._fit_taken(uncharted)  # (the samples taken and their tree built above)
             self.n_changed_ = changed
             return self
         moved = np.concatenate([self.samples_[added], old[removed]])

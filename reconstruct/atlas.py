@@ -42,7 +42,14 @@ import trimesh
 from sklearn.base import BaseEstimator
 
 from .atlas_state import ATLAS_FORMAT, atlas_from_state, atlas_state
-from .chart_fit import BegunFit, chart_workers, fit_charts, n_chart_workers, warm_up
+from .chart_fit import (
+    BegunFit,
+    ChartsAhead,
+    chart_workers,
+    fit_charts,
+    n_chart_workers,
+    warm_up,
+)
 from .chart_parts import ChartPart, chart_part, unchanged
 from .chart_sides import ChartSides, UnchartedTracker, uncharted_points
 from .charts import ChartDecomposition
@@ -183,12 +190,15 @@ class AtlasReconstructor(BaseEstimator):
     def start(self, points) -> AtlasReconstructor:
         """Begin a `fit` of ``points`` (n, 3) in the background, while the caller does other
         work: the chart workers start (or those of `warm` serve), one of them decomposes the
-        cloud, and they import torch. A later ``fit(points)`` of the same array takes both up
-        (of the parameters, only ``hidden_layers`` and ``n_neighbors`` may change in
-        between); `cancel` drops them. Without workers (``n_jobs=1``, a daemonic process)
-        nothing starts. Until then the estimator holds a process pool: it cannot be pickled
-        or copied. Rough 20k: the decomposition (2.1 s) runs while `SurfaceReconstructor`
-        searches one chart's net, which decides whether the atlas is needed."""
+        cloud, and they import torch; with ``n_neighbors`` given, they then embed the charts
+        ahead (`chart_fit.ChartsAhead`) until the fit or `idle_workers`. A later
+        ``fit(points)`` of the same array takes them up (of the parameters, only
+        ``hidden_layers`` and ``n_neighbors`` may change in between: charts embedded with
+        another K are embedded again); `cancel` drops them. Without workers (``n_jobs=1``, a
+        daemonic process) nothing starts. Until then the estimator holds a process pool: it
+        cannot be pickled or copied. Rough 20k: the decomposition (2.1 s) and most charts'
+        embeddings run while `SurfaceReconstructor` searches one chart's net, which decides
+        whether the atlas is needed."""
         charted = self._charted(check_points(points))
         started = self.__dict__.get("_started")
         if started is not None and started.points is None:  # warmed: not begun on a cloud
@@ -201,7 +211,10 @@ class AtlasReconstructor(BaseEstimator):
         decomposition = workers.submit(self._decomposition().fit, charted)
         if warming is None:  # after the decomposition, which needs no torch
             warming = warm_up(workers, n_chart_workers(self.n_jobs))
-        self._started = BegunFit(points, charted, workers, decomposition, warming)
+        ahead = None if self.n_neighbors is None else ChartsAhead(
+            workers, n_chart_workers(self.n_jobs), decomposition, charted,
+            **self._chart_params(None)[0])
+        self._started = BegunFit(points, charted, workers, decomposition, warming, ahead)
         return self
 
     def idle_workers(self) -> tuple:
@@ -219,8 +232,8 @@ class AtlasReconstructor(BaseEstimator):
 
     def fit(self, points, y=None) -> AtlasReconstructor:
         """points : (n, 3) float. Returns self with ``mesh_`` set."""
-        started_with, charted, workers, decomposition, _ = self.__dict__.pop(
-            "_started", (None,) * 5)
+        started_with, charted, workers, decomposition, _, ahead = self.__dict__.pop(
+            "_started", (None,) * 6)
         if started_with is not points:  # begun for other points: only its workers serve
             decomposition = None
         started = time.perf_counter()
@@ -235,7 +248,7 @@ class AtlasReconstructor(BaseEstimator):
                     workers = chart_workers(self.n_jobs)
                 points, fitted = self._fit_all(points, workers, started,
                                                None if decomposition is None
-                                               else (charted, decomposition))
+                                               else (charted, decomposition, ahead))
             finally:  # the workers stop on their core while this one joins the charts (rough
                 # 20k: 0.55 s of stopping hidden)
                 if workers is not None:
@@ -282,14 +295,21 @@ class AtlasReconstructor(BaseEstimator):
 
     def _fit_all(self, points, workers, started, begun=None) -> tuple[np.ndarray, dict]:
         """Decompose ``points`` (a subset of them beyond ``max_points``), or take up what
-        `start` began (``begun``: the points it charted and its decomposition's future), and
-        fit every chart, splitting unfaithful ones. Returns (the points charted, {chart:
-        (reconstructor or None, its point indices)})."""
+        `start` began (``begun``: the points it charted, its decomposition's future and the
+        charts it embeds ahead or None), and fit every chart, splitting unfaithful ones.
+        Returns (the points charted, {chart: (reconstructor or None, its point indices)})."""
+        ahead = {}  # chart index: its `Embedded`, when embedded ahead with this fit's K
         if begun is None:
             points = self._charted(points)
             decomposition = self._decomposition().fit(points)
         else:
             points, decomposition = begun[0], begun[1].result()
+            if begun[2] is not None:
+                embedded = begun[2].stop(collect=True)
+                if begun[2].params == self._chart_params(None)[0]:
+                    ahead = embedded
+                log.info("%d of %d charts embedded ahead%s", len(embedded),
+                         decomposition.n_charts_, "" if ahead is embedded else " with another K")
         self.timings_["charts"] = time.perf_counter() - started
         self.decomposition_ = decomposition
         self.points_ = points
@@ -302,7 +322,8 @@ class AtlasReconstructor(BaseEstimator):
             alone = first is None and self.hidden_layers is None
             batch, queue = (queue[:1], queue[1:]) if alone else (queue, [])
             members = [decomposition.chart(index) for index, _ in batch]
-            results = self._fit_charts([points[m] for m in members], first, workers)
+            results = self._fit_charts([points[m] for m in members], first, workers, [
+                ahead.pop(index, None) if not splits else None for index, splits in batch])
             for (index, splits), chart, (reconstructor, fault) in zip(
                     batch, members, results, strict=True):
                 if fault is not None and splits < self.max_splits and len(
@@ -321,14 +342,24 @@ class AtlasReconstructor(BaseEstimator):
                      decomposition.n_charts_, time.perf_counter() - started)
         return points, fitted
 
-    def _fit_charts(self, clouds: list[np.ndarray], first, workers) -> list[tuple]:
-        """Fit the charts of ``clouds`` (each (m_i, 3)) with the given layers and K, or the
-        first chart's (`chart_fit.fit_charts`)."""
+    def _chart_params(self, first) -> tuple[dict, tuple | None]:
+        """(`chart_fit.embed_chart`'s parameters, the hidden layers) of the charts: the given
+        layers and K, or the ``first`` fitted chart's."""
         params = dict(lam=self.lam, depth=self.depth, random_state=self.random_state,
-                      hidden_layers=self.hidden_layers, n_neighbors=self.n_neighbors)
+                      n_neighbors=self.n_neighbors)
         if first is not None and self.reuse_layers:
-            params.update(n_neighbors=first.n_neighbors_, hidden_layers=first.hidden_layers_)
-        return fit_charts(clouds, workers, **params)
+            params.update(n_neighbors=first.n_neighbors_)
+            return params, first.hidden_layers_
+        return params, self.hidden_layers
+
+    def _fit_charts(self, clouds: list[np.ndarray], first, workers, embedded) -> list[tuple]:
+        """Fit the charts of ``clouds`` (each (m_i, 3); ``embedded``: for each its
+        `Embedded` or None) with the given layers and K, or the first chart's
+        (`chart_fit.fit_charts`)."""
+        params, layers = self._chart_params(first)
+        if params["n_neighbors"] != self.n_neighbors:  # embedded ahead with another K
+            embedded = None
+        return fit_charts(clouds, workers, embedded, hidden_layers=layers, **params)
 
     def _join(self, decide: bool = True, fresh=None) -> None:
         """Join the charts' parts into ``mesh_``. ``decide``: find again which side of each

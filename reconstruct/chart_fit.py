@@ -10,10 +10,13 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import threading
 import time
 import warnings
+from collections import deque
+from concurrent.futures import FIRST_COMPLETED
 from concurrent.futures import wait as wait_for
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from joblib import effective_n_jobs
@@ -24,6 +27,9 @@ from .faithfulness import FOLD_LIMIT, UNEXPLAINED_LIMIT, fold_share
 from .io import one_line
 from .meshing import default_spacing
 from .threads import single_threaded
+
+if TYPE_CHECKING:
+    from .pipeline import Embedded
 
 log = logging.getLogger(__name__)
 
@@ -48,17 +54,34 @@ def _import_pipeline() -> None:
     load_torch()
 
 
+def _chart_params(n_points: int, lam: float, depth: int, random_state,
+                  n_neighbors: int | None) -> dict:
+    """`SurfaceReconstructor` parameters of a chart of ``n_points``."""
+    return dict(lam=lam, depth=depth, random_state=random_state, atlas="never", up=None,
+                embedding="landmark" if n_points > LANDMARK_CHARTS else "auto",
+                n_neighbors=n_neighbors)
+
+
+def embed_chart(points, lam: float, depth: int, random_state, n_neighbors: int) -> Embedded:
+    """The start of `fit_chart` that needs no layers (`SurfaceReconstructor.embed`): the chart's
+    embedding with K ``n_neighbors`` and its boundary samples at every saved depth."""
+    from .pipeline import SurfaceReconstructor
+
+    return SurfaceReconstructor(**_chart_params(len(points), lam, depth, random_state,
+                                                n_neighbors)).embed(points, SAVED_DEPTHS)
+
+
 def fit_chart(points, lam: float, depth: int, random_state, n_neighbors: int | None = None,
-              hidden_layers: tuple[int, ...] | None = None) -> tuple:
+              hidden_layers: tuple[int, ...] | None = None,
+              embedded: Embedded | None = None) -> tuple:
     """Fit one chart (m, 3) with the paper's pipeline: a search, or the given ``hidden_layers``
-    and K. Returns (fitted `SurfaceReconstructor` or None, fault or None): the fault says why
-    the chart is not faithful (`faithfulness`) or could not be fitted."""
+    and K (``embedded``: `embed_chart`'s of these points, taken up). Returns (fitted
+    `SurfaceReconstructor` or None, fault or None): the fault says why the chart is not
+    faithful (`faithfulness`) or could not be fitted."""
     from .mlp import AdaptiveMLP
     from .pipeline import SurfaceReconstructor
 
-    params = dict(lam=lam, depth=depth, random_state=random_state, atlas="never", up=None,
-                  embedding="landmark" if len(points) > LANDMARK_CHARTS else "auto",
-                  n_neighbors=n_neighbors)
+    params = _chart_params(len(points), lam, depth, random_state, n_neighbors)
     if hidden_layers is not None:
         params.update(mlp=AdaptiveMLP(
             hidden_layers=hidden_layers, final_starts=CHART_FINAL_STARTS,
@@ -68,7 +91,7 @@ def fit_chart(points, lam: float, depth: int, random_state, n_neighbors: int | N
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ReconstructionWarning)
-            reconstructor = SurfaceReconstructor(**params).fit(points)
+            reconstructor = SurfaceReconstructor(**params).fit(points, embedded=embedded)
     except Exception as exc:  # a chart the method cannot fit is split, never hidden
         log.info("a chart of %d points failed to fit: %s", len(points), exc)
         return None, f"fit failed ({one_line(exc)})"
@@ -131,44 +154,104 @@ def warm_up(workers, n_workers: int) -> list:
     return [workers.submit(_import_pipeline) for _ in range(n_workers)]
 
 
-def fit_charts(clouds: list[np.ndarray], workers=None, **params) -> list[tuple]:
-    """`fit_chart` of each of ``clouds`` (each (m_i, 3)) with ``params``; returns its results in
-    order. With ``workers`` (`chart_workers`), they take the largest charts first and this
-    process the smallest, until the two meet."""
+def fit_charts(clouds: list[np.ndarray], workers=None, embedded=None, **params) -> list[tuple]:
+    """`fit_chart` of each of ``clouds`` (each (m_i, 3)) with ``params`` (``embedded``: None, or
+    for each cloud its `embed_chart` or None); returns its results in order. With ``workers``
+    (`chart_workers`), they take the largest charts first and this process the smallest, until
+    the two meet."""
+    embedded = embedded or [None] * len(clouds)
     if workers is None or len(clouds) == 1:
-        return [fit_chart(cloud, **params) for cloud in clouds]
+        return [fit_chart(cloud, embedded=ahead, **params)
+                for cloud, ahead in zip(clouds, embedded, strict=True)]
     largest_first = np.argsort([-len(cloud) for cloud in clouds], kind="stable")
-    futures = {i: workers.submit(fit_chart, clouds[i], **params) for i in largest_first}
+    futures = {i: workers.submit(fit_chart, clouds[i], embedded=embedded[i], **params)
+               for i in largest_first}
     results = {}
     with single_threaded():  # one core here, the others the workers'
         for i in largest_first[::-1]:
             if not futures[i].cancel():  # a worker has it, and every larger one
                 break
-            results[i] = fit_chart(clouds[i], **params)
+            results[i] = fit_chart(clouds[i], embedded=embedded[i], **params)
     for i, future in futures.items():
         if i not in results:
             results[i] = future.result()
     return [results[i] for i in range(len(clouds))]
 
 
+class ChartsAhead:
+    """Charts embedded ahead (`embed_chart`) by idle workers: once the decomposition's future
+    is back, each of its charts in turn, one a worker at a time, until `stop`. A one-chart fit
+    searching its net leaves the workers idle for seconds (rough 20k: 4 s after the
+    decomposition); an atlas's chart then starts from its network (embedding and boundary
+    sampling: a third of a chart's fit)."""
+
+    def __init__(self, workers, n_workers: int, decomposition, points, **params):
+        self.params = params  # `embed_chart`'s: a fit with others cannot take them up
+        self._embedded: dict[int, Embedded] = {}
+        self._stopping = threading.Event()
+        self._collect = False
+        self._thread = threading.Thread(
+            target=self._run, args=(workers, max(n_workers, 1), decomposition, points),
+            name="charts ahead", daemon=True)
+        self._thread.start()
+
+    def _run(self, workers, n_workers, decomposition, points) -> None:
+        try:
+            decomposition = decomposition.result()
+        except BaseException:  # noqa: BLE001 - the fit that takes the decomposition up says why
+            return
+        waiting, running = deque(range(decomposition.n_charts_)), {}
+        while (waiting or running) and not self._stopping.is_set():
+            while waiting and len(running) < n_workers:
+                index = waiting.popleft()
+                try:
+                    future = workers.submit(embed_chart, points[decomposition.chart(index)],
+                                            **self.params)
+                except RuntimeError:  # the pool shut down: nothing more to do ahead
+                    return
+                running[future] = index
+            done, _ = wait_for(running, timeout=0.05, return_when=FIRST_COMPLETED)
+            self._take(done, running)
+        if self._collect:  # a worker has them: their results are a moment away
+            self._take(wait_for(running).done, running)
+
+    def _take(self, done, running: dict) -> None:
+        for future in done:
+            index = running.pop(future)
+            if not future.cancelled() and future.exception() is None:
+                self._embedded[index] = future.result()
+
+    def stop(self, collect: bool = False) -> dict:
+        """Embed no further chart; returns {chart index: `Embedded`} of the charts embedded
+        (``collect``: with those being embedded now, waited for)."""
+        self._collect = collect
+        self._stopping.set()
+        self._thread.join()
+        return self._embedded
+
+
 class BegunFit(NamedTuple):
     """What `AtlasReconstructor.warm` / `start` began: the points and their charted subset
     (None when only warmed), the worker pool, the decomposition's future (None when only
-    warmed) and the workers' torch imports (one future each)."""
+    warmed), the workers' torch imports (one future each) and the charts they embed ahead
+    (`ChartsAhead`, or None)."""
 
     points: object
     charted: object
     workers: object
     decomposition: object
     warming: list
+    ahead: ChartsAhead | None = None
 
     def idle(self) -> tuple:
         """(the pool, its number of workers) once they have imported torch and decomposed
-        the cloud if asked, or (None, 0)."""
+        the cloud if asked, or (None, 0); charts are no longer embedded ahead."""
         if not all(  # done, and well: a failed import says the pool is not
                 f.done() and not f.cancelled() and f.exception() is None
                 for f in (self.decomposition, *self.warming) if f is not None):
             return None, 0
+        if self.ahead is not None:
+            self.ahead.stop()
         return self.workers, len(self.warming)  # one import per worker
 
     def stop(self) -> None:
@@ -176,6 +259,8 @@ class BegunFit(NamedTuple):
         it cost a 20k sphere cap's one-chart fit 2.2 s). Loky's `kill_workers` earlier than
         that left a worker blocked sending its result, or its manager thread raised on an item
         not yet dispatched."""
+        if self.ahead is not None:
+            self.ahead.stop(collect=True)  # none being sent when the workers are stopped
         if self.decomposition is not None:
             wait_for([self.decomposition])
         deadline = time.monotonic() + 10.0

@@ -16,6 +16,7 @@ import os
 import time
 import warnings
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import trimesh
@@ -84,6 +85,17 @@ def _check_known(params: dict) -> None:
     unknown = set(params) - set(_MESH_PARAMS)
     if unknown:
         raise InvalidInputError(f"cannot re-mesh with {sorted(unknown)}: not a mesh parameter")
+
+
+class Embedded(NamedTuple):
+    """What `SurfaceReconstructor.embed` computes of a cloud before any network, for
+    ``fit(points, embedded=...)`` to take up: the same fit, its first steps done ahead (an atlas
+    embeds its charts on an idle core while a one-chart fit searches)."""
+
+    points: np.ndarray  # (n, 3) the cloud embedded
+    embedding: SurfaceEmbedding  # fitted on it
+    boundaries: dict  # its boundary samples at the depths asked (the fit's boundary cache)
+    key: tuple  # the parameters they depend on (`SurfaceReconstructor._embedding_key`)
 
 
 class SurfaceReconstructor(BaseEstimator):
@@ -187,17 +199,22 @@ class SurfaceReconstructor(BaseEstimator):
         self.atlas = atlas
         self.up = up
 
-    def fit(self, points, warm_start: SurfaceReconstructor | None = None) -> SurfaceReconstructor:
+    def fit(self, points, warm_start: SurfaceReconstructor | None = None,
+            embedded: Embedded | None = None) -> SurfaceReconstructor:
         """points : (n, 3) float, any unit. Returns self with ``mesh_`` set.
 
         warm_start : a fitted reconstruction of the same surface (e.g. from fewer points). Its
             neighbourhood size is reused, the new embedding aligned to its embedding and its
             network fine-tuned (``fine_tune``); raises `WarmStartRefused` (nothing changed)
-            when too few points are shared, the embeddings disagree or it has no network."""
+            when too few points are shared, the embeddings disagree or it has no network.
+        embedded : `embed`'s of these points with these parameters: its embedding and
+            boundary samples are taken instead of computed (the same mesh)."""
         self._check_mesh_params()
         if self.atlas not in ATLAS_MODES:
             raise InvalidInputError(f"atlas must be one of {ATLAS_MODES}, got {self.atlas!r}")
         points = np.array(check_points(points))  # its own: ``points_`` may be this array
+        if embedded is not None:
+            self._check_embedded(embedded, points, warm_start)
         for name in ("atlas_", "atlas_reason_"):
             self.__dict__.pop(name, None)
         self.timings_ = {}
@@ -209,22 +226,51 @@ class SurfaceReconstructor(BaseEstimator):
             if warm_start is None and self.atlas == "auto" and len(points) >= SPECULATE_FROM:
                 spare = self._new_atlas()
                 spare.warm()
-            return self._fit_from_scratch(points, warm_start, spare, started)
+            return self._fit_from_scratch(points, warm_start, spare, started, embedded)
         finally:
             if spare is not None:
                 spare.cancel()  # nothing, when the atlas took it up
 
-    def _fit_from_scratch(self, points, warm_start, spare, started):
+    def embed(self, points, depths=()) -> Embedded:
+        """The start of `fit` that needs no network: embed ``points`` (n, 3) and sample their
+        boundary at each of ``depths``, for ``fit(points, embedded=...)``."""
+        points = np.array(check_points(points))
+        embedding = self._embedding_estimator(self.n_neighbors).fit(points)
+        sampler = copy.copy(self)  # samples with this one's parameters, into a cache of its own
+        sampler.__dict__.update(embedding_=embedding.embedding_, _boundary_cache={})
+        for depth in depths:
+            sampler.depth = depth
+            sampler._boundary_points()
+        return Embedded(points, embedding, sampler._boundary_cache, self._embedding_key())
+
+    def _embedding_key(self) -> tuple:
+        return (self.embedding, self.n_neighbors, self.random_state, self.boundary,
+                self.n_corners)
+
+    def _embedding_estimator(self, n_neighbors) -> SurfaceEmbedding:
+        return SurfaceEmbedding(method=self.embedding, n_neighbors=n_neighbors,
+                                random_state=self.random_state)
+
+    def _check_embedded(self, embedded: Embedded, points, warm_start) -> None:
+        if warm_start is not None:
+            raise InvalidInputError("a warm start aligns an embedding of its own: give it or "
+                                    "embedded, not both")
+        if embedded.key != self._embedding_key() or not np.array_equal(embedded.points, points):
+            raise InvalidInputError("embedded is of other points or other embedding or "
+                                    "boundary parameters")
+
+    def _fit_from_scratch(self, points, warm_start, spare, started, embedded=None):
         """`fit` from the embedding on (``spare``: an `AtlasReconstructor` whose workers
-        `warm` started, or None)."""
+        `warm` started, or None; ``embedded``: `embed`'s, checked)."""
         n_neighbors = self.n_neighbors
         if warm_start is not None:
             if not hasattr(warm_start, "mlp_"):
                 raise WarmStartRefused("the earlier fit has no network (loaded from disk)")
             n_neighbors = warm_start.n_neighbors_ if n_neighbors is None else n_neighbors
-        embedding = SurfaceEmbedding(
-            method=self.embedding, n_neighbors=n_neighbors, random_state=self.random_state
-        ).fit(points)
+        if embedded is None:
+            embedding, boundaries = self._embedding_estimator(n_neighbors).fit(points), {}
+        else:
+            embedding, boundaries = embedded.embedding, dict(embedded.boundaries)
         self.timings_["embedding"] = time.perf_counter() - started
         # the same array when the embedding kept every point: an atlas begun on it serves
         # whichever of the two `_atlas_reason` gives
@@ -238,10 +284,11 @@ class SurfaceReconstructor(BaseEstimator):
                     f"surface: under {ATLAS_RESIDUAL})"), atlas=spare)
         self.embedding_ = uv
         self.points_ = fitted
-        self._boundary_cache = {}
+        self._boundary_cache = boundaries
         self.__dict__.pop("_seen_side", None)  # of an earlier fit's embedding
-        if spare is not None:  # the cloud decomposed for an atlas while one chart is searched
-            spare.start(fitted)
+        if spare is not None:  # the cloud decomposed for an atlas while one chart is searched,
+            # and its charts embedded with this K
+            spare.set_params(n_neighbors=embedding.n_neighbors_).start(fitted)
         return self._fit_one_chart(points, fitted, uv, embedding, warm_start, spare, started)
 
     def _fit_one_chart(self, points, fitted, uv, embedding, warm_start, spare, started):

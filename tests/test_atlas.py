@@ -293,15 +293,55 @@ def test_a_started_atlas_fits_the_same_mesh_and_leaves_no_worker(monkeypatch):
     assert multiprocessing.active_children() == []
 
 
+def all_embedded_ahead(atlas: AtlasReconstructor) -> AtlasReconstructor:
+    """``atlas``, `start`ed, once its workers have embedded every chart ahead."""
+    begun = atlas._started
+    n_charts = begun.decomposition.result().n_charts_
+    deadline = time.monotonic() + 120
+    while len(begun.ahead._embedded) < n_charts and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert len(begun.ahead._embedded) == n_charts
+    return atlas
+
+
+def test_charts_embedded_ahead_are_taken_up_with_their_k_only(monkeypatch):
+    points = holed_patch(n=1500)
+    params = dict(chart_size=500, n_neighbors=10, hidden_layers=(6,))
+    plain = AtlasReconstructor(n_jobs=1, **params).fit(points)
+    started = all_embedded_ahead(AtlasReconstructor(n_jobs=2, **params).start(points))
+
+    def embedded_here(*_, **__):
+        raise AssertionError("a chart embedded ahead was embedded again")
+
+    with monkeypatch.context() as patch:  # the worker, a spawned process, is not patched
+        patch.setattr("reconstruct.embedding.SurfaceEmbedding.fit", embedded_here)
+        started.fit(points)
+    assert len(started.charts_) == len(plain.charts_)
+    np.testing.assert_array_equal(plain.mesh_.vertices, started.mesh_.vertices)
+    np.testing.assert_array_equal(plain.mesh_.faces, started.mesh_.faces)
+    assert multiprocessing.active_children() == []
+    # embedded ahead with another K: embedded again with the fit's, the same mesh as without
+    other = all_embedded_ahead(
+        AtlasReconstructor(n_jobs=2, **{**params, "n_neighbors": 14}).start(points))
+    other.set_params(n_neighbors=10).fit(points)
+    assert not other.faults_
+    np.testing.assert_array_equal(plain.mesh_.faces, other.mesh_.faces)
+    assert multiprocessing.active_children() == []
+
+
 def test_a_cancelled_start_leaves_no_worker():
     atlas = AtlasReconstructor(chart_size=500, n_jobs=2).start(holed_patch(n=1500))
     atlas.cancel()  # at once: the workers are waited for
     atlas.cancel()  # twice: nothing left to drop
     assert multiprocessing.active_children() == []
     assert not hasattr(atlas, "mesh_")
+    atlas.set_params(n_neighbors=10).start(holed_patch(n=1500))  # while charts are embedded
+    wait_for([atlas._started.decomposition])
+    atlas.cancel()
+    assert multiprocessing.active_children() == []
     # once the decomposition is back and the torch import runs: the workers are stopped
     atlas.start(holed_patch(n=1500))
-    _, _, _, decomposition, warming = atlas._started
+    decomposition, warming = atlas._started.decomposition, atlas._started.warming
     decomposition.result()
     while not all(f.running() or f.done() for f in warming):
         time.sleep(0.01)

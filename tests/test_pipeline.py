@@ -72,6 +72,30 @@ def test_sphere_cap_keeps_its_radius():
     assert np.percentile(np.abs(radii - 2.0), 95) < 0.03
 
 
+def test_a_fit_takes_up_what_embed_computed_ahead(plane_model, monkeypatch):
+    points = noisy_plane()
+    params = dict(random_state=0, **FAST)
+    embedded = SurfaceReconstructor(**params).embed(points, depths=(1, 2))
+
+    def embedded_again(*_, **__):
+        raise AssertionError("the fit embedded the cloud again")
+
+    with monkeypatch.context() as patch:
+        patch.setattr("reconstruct.embedding.SurfaceEmbedding.fit", embedded_again)
+        patch.setattr("reconstruct.pipeline.MultiDepthBoundary.fit", embedded_again)
+        model = SurfaceReconstructor(**params).fit(points, embedded=embedded)
+        model.remesh(depth=1)  # sampled ahead as well
+        model.remesh(depth=2)
+    np.testing.assert_array_equal(model.mesh_.faces, plane_model.mesh_.faces)
+    np.testing.assert_array_equal(model.mesh_.vertices, plane_model.mesh_.vertices)
+    with pytest.raises(InvalidInputError, match="other points"):
+        SurfaceReconstructor(**params).fit(points[::-1], embedded=embedded)
+    with pytest.raises(InvalidInputError, match="other points"):
+        SurfaceReconstructor(n_neighbors=9, **params).fit(points, embedded=embedded)
+    with pytest.raises(InvalidInputError, match="warm start"):
+        SurfaceReconstructor(**params).fit(points, warm_start=plane_model, embedded=embedded)
+
+
 def test_same_seed_same_mesh():
     points = noisy_plane(400, seed=3)
     a = SurfaceReconstructor(random_state=7, **FAST).fit(points).mesh_

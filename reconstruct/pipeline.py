@@ -40,8 +40,8 @@ from .join import check_up, faces_seen_side
 from .meshing import default_spacing, mesh_inside, sample_ring
 from .mlp import AdaptiveMLP
 from .outline import border_inset, border_spacing, extend_outline
+from .pipeline_state import STATE_FORMAT, reconstruction_from_state, reconstruction_state
 from .spline import BoundarySpline, SplineInput, spline_input
-from .surface_map import OnnxSurfaceMap
 from .validation import check_points
 
 log = logging.getLogger(__name__)
@@ -54,7 +54,6 @@ DEFAULT_LAM = 1.0
 #: Default boundary depth: on bench/quality.py deeper paths trade completeness for robustness to
 #: stray points; 2 keeps F-score ≥ 0.97 on the smooth shapes while still combining two paths.
 DEFAULT_DEPTH = 2
-STATE_FORMAT = "scanstation-reconstruction/1"
 #: One chart is not tried when the embedding's residual variance (1 − R² of geodesic against
 #: embedded distances) is above this. Measured at 1,600 and 20,000 points, σ 0.5 % and 1 %:
 #: every bench.quality shape ≤ 0.006; the closed awkward objects: hook 0.019–0.024, torus
@@ -592,39 +591,14 @@ class SurfaceReconstructor(BaseEstimator):
 
     def state(self, prefix: str = "") -> tuple[dict, dict[str, np.ndarray]]:
         """The one-chart fitted state: (meta, arrays named ``prefix`` + embedding / points /
-        onnx), as `save` writes it."""
-        meta = {
-            "format": STATE_FORMAT,
-            "params": self._saved_params(),
-            "embedding_method": self.embedding_method_,
-            "n_neighbors": int(self.n_neighbors_),
-            "hidden_layers": list(self.hidden_layers_),
-        }
-        arrays = {f"{prefix}embedding": self.embedding_, f"{prefix}points": self.points_,
-                  f"{prefix}onnx": np.frombuffer(self.surface_map_.to_bytes(), dtype=np.uint8)}
-        for key, points in getattr(self, "_boundary_cache", {}).items():
-            if isinstance(key, tuple):  # the boundary samples of each (boundary, depth,
-                # n_corners) used; not the KD-tree or the geometry (rebuilt when needed)
-                arrays[f"{prefix}boundary_{key[0]}_{key[1]}_{key[2]}"] = points
-        return meta, arrays
+        onnx / boundary samples), as `save` writes it (`pipeline_state.reconstruction_state`)."""
+        return reconstruction_state(self, self._saved_params(), prefix)
 
     @classmethod
     def from_state(cls, meta: dict, arrays: dict, prefix: str = "") -> SurfaceReconstructor:
-        """Rebuild a one-chart reconstruction from `state`; it can `remesh()` at once."""
-        self = cls(**meta["params"])
-        self.embedding_ = np.asarray(arrays[f"{prefix}embedding"], float)
-        self.points_ = np.asarray(arrays[f"{prefix}points"], float)
-        self.embedding_method_ = meta["embedding_method"]
-        self.n_neighbors_ = int(meta["n_neighbors"])
-        self.hidden_layers_ = tuple(meta["hidden_layers"])
-        self.surface_map_ = OnnxSurfaceMap.from_bytes(bytes(arrays[f"{prefix}onnx"]))
-        self._boundary_cache = {}
-        for name in arrays:
-            if name.startswith(f"{prefix}boundary_"):
-                boundary, depth, n_corners = name[len(f"{prefix}boundary_"):].split("_")
-                self._boundary_cache[(boundary, int(depth), int(n_corners))] = np.asarray(
-                    arrays[name], float)
-        return self
+        """Rebuild a one-chart reconstruction from `state`; it can `remesh()` at once
+        (`pipeline_state.reconstruction_from_state`)."""
+        return reconstruction_from_state(cls, meta, arrays, prefix)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> SurfaceReconstructor:

@@ -46,7 +46,7 @@ from .chart_fit import (
     BegunFit,
     ChartsAhead,
     chart_workers,
-    fit_charts,
+    fit_every_chart,
     n_chart_workers,
     warm_up,
 )
@@ -213,7 +213,7 @@ class AtlasReconstructor(BaseEstimator):
             warming = warm_up(workers, n_chart_workers(self.n_jobs))
         ahead = None if self.n_neighbors is None else ChartsAhead(
             workers, n_chart_workers(self.n_jobs), decomposition, charted,
-            **self._chart_params(None)[0])
+            **self._embed_params())
         self._started = BegunFit(points, charted, workers, decomposition, warming, ahead)
         return self
 
@@ -306,60 +306,22 @@ class AtlasReconstructor(BaseEstimator):
             points, decomposition = begun[0], begun[1].result()
             if begun[2] is not None:
                 embedded = begun[2].stop(collect=True)
-                if begun[2].params == self._chart_params(None)[0]:
+                if begun[2].params == self._embed_params():
                     ahead = embedded
                 log.info("%d of %d charts embedded ahead%s", len(embedded),
                          decomposition.n_charts_, "" if ahead is embedded else " with another K")
         self.timings_["charts"] = time.perf_counter() - started
         self.decomposition_ = decomposition
         self.points_ = points
-        fitted: dict[int, tuple] = {}
-        self.faults_ = []
-        queue = [(index, 0) for index in range(decomposition.n_charts_)]
-        first = None  # the first fitted chart: its searched layers and K are the others'
-        while queue:
-            # until one chart has searched the layers, one at a time; then all waiting at once
-            alone = first is None and self.hidden_layers is None
-            batch, queue = (queue[:1], queue[1:]) if alone else (queue, [])
-            members = [decomposition.chart(index) for index, _ in batch]
-            results = self._fit_charts([points[m] for m in members], first, workers, [
-                ahead.pop(index, None) if not splits else None for index, splits in batch])
-            for (index, splits), chart, (reconstructor, fault) in zip(
-                    batch, members, results, strict=True):
-                if fault is not None and splits < self.max_splits and len(
-                        decomposition.cores_[index]) >= 2 * decomposition.min_points:
-                    new = decomposition.split(index)
-                    log.info("chart %d: %s; split in %d", index, fault, len(new))
-                    queue += [(i, splits + 1) for i in new]
-                    fitted.pop(index, None)
-                    continue
-                if fault is not None:
-                    self.faults_.append(f"chart {index} ({len(chart)} points): {fault}")
-                if first is None and reconstructor is not None:
-                    first = reconstructor
-                fitted[index] = (reconstructor, chart)
-            log.info("%d of %d charts fitted (%.0f s so far)", len(fitted),
-                     decomposition.n_charts_, time.perf_counter() - started)
+        fitted, self.faults_ = fit_every_chart(
+            decomposition, points, workers, self._embed_params(), self.hidden_layers,
+            self.reuse_layers, self.max_splits, ahead, started)
         return points, fitted
 
-    def _chart_params(self, first) -> tuple[dict, tuple | None]:
-        """(`chart_fit.embed_chart`'s parameters, the hidden layers) of the charts: the given
-        layers and K, or the ``first`` fitted chart's."""
-        params = dict(lam=self.lam, depth=self.depth, random_state=self.random_state,
-                      n_neighbors=self.n_neighbors)
-        if first is not None and self.reuse_layers:
-            params.update(n_neighbors=first.n_neighbors_)
-            return params, first.hidden_layers_
-        return params, self.hidden_layers
-
-    def _fit_charts(self, clouds: list[np.ndarray], first, workers, embedded) -> list[tuple]:
-        """Fit the charts of ``clouds`` (each (m_i, 3); ``embedded``: for each its
-        `Embedded` or None) with the given layers and K, or the first chart's
-        (`chart_fit.fit_charts`)."""
-        params, layers = self._chart_params(first)
-        if params["n_neighbors"] != self.n_neighbors:  # embedded ahead with another K
-            embedded = None
-        return fit_charts(clouds, workers, embedded, hidden_layers=layers, **params)
+    def _embed_params(self) -> dict:
+        """`chart_fit.embed_chart`'s parameters of this atlas's charts."""
+        return dict(lam=self.lam, depth=self.depth, random_state=self.random_state,
+                    n_neighbors=self.n_neighbors)
 
     def _join(self, decide: bool = True, fresh=None) -> None:
         """Join the charts' parts into ``mesh_``. ``decide``: find again which side of each

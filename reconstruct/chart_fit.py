@@ -1,5 +1,7 @@
-"""Fitting an atlas's charts: one chart with the paper's pipeline (`fit_chart`), and many at
-once in this process and a pool of worker processes (`chart_workers`, `fit_charts`).
+"""Fitting an atlas's charts: one chart with the paper's pipeline (`fit_chart`), many at once
+in this process and a pool of worker processes (`chart_workers`, `fit_charts`), and all of a
+decomposition's, unfaithful ones split (`fit_every_chart`); charts embedded ahead on idle
+workers (`ChartsAhead`).
 
 A chart is a `SurfaceReconstructor` fitted without the atlas fallback, then judged faithful or
 not (`faithfulness`: unexplained points, fold-over), pinned to its grid lattice and sampled at
@@ -176,6 +178,53 @@ def fit_charts(clouds: list[np.ndarray], workers=None, embedded=None, **params) 
         if i not in results:
             results[i] = future.result()
     return [results[i] for i in range(len(clouds))]
+
+
+def fit_every_chart(decomposition, points, workers, params: dict, hidden_layers,
+                    reuse_layers: bool, max_splits: int, ahead: dict,
+                    started: float) -> tuple[dict, list[str]]:
+    """Fit every chart of ``decomposition`` (a fitted `ChartDecomposition` of ``points``
+    (m, 3)) by `fit_charts` with ``params`` (`embed_chart`'s) and ``hidden_layers`` (None: the
+    first chart searches them, and with ``reuse_layers`` its layers and K serve the others),
+    splitting an unfaithful chart up to ``max_splits`` times along one line of descent.
+    ``ahead``: {chart index: `Embedded`} of charts embedded ahead with ``params`` (taken up,
+    and emptied); ``started``: the fit's start (`time.perf_counter`), for the log. Returns
+    ({chart index: (fitted `SurfaceReconstructor` or None, its point indices)}, the faults
+    left)."""
+    fitted: dict[int, tuple] = {}
+    faults = []
+    queue = [(index, 0) for index in range(decomposition.n_charts_)]
+    first = None  # the first fitted chart: its searched layers and K are the others'
+    while queue:
+        # until one chart has searched the layers, one at a time; then all waiting at once
+        alone = first is None and hidden_layers is None
+        batch, queue = (queue[:1], queue[1:]) if alone else (queue, [])
+        members = [decomposition.chart(index) for index, _ in batch]
+        chart_params, layers = dict(params), hidden_layers
+        if first is not None and reuse_layers:
+            chart_params["n_neighbors"], layers = first.n_neighbors_, first.hidden_layers_
+        embedded = [ahead.pop(index, None) if not splits else None for index, splits in batch]
+        if chart_params["n_neighbors"] != params["n_neighbors"]:  # embedded with another K
+            embedded = None
+        results = fit_charts([points[m] for m in members], workers, embedded,
+                             hidden_layers=layers, **chart_params)
+        for (index, splits), chart, (reconstructor, fault) in zip(
+                batch, members, results, strict=True):
+            if fault is not None and splits < max_splits and len(
+                    decomposition.cores_[index]) >= 2 * decomposition.min_points:
+                new = decomposition.split(index)
+                log.info("chart %d: %s; split in %d", index, fault, len(new))
+                queue += [(i, splits + 1) for i in new]
+                fitted.pop(index, None)
+                continue
+            if fault is not None:
+                faults.append(f"chart {index} ({len(chart)} points): {fault}")
+            if first is None and reconstructor is not None:
+                first = reconstructor
+            fitted[index] = (reconstructor, chart)
+        log.info("%d of %d charts fitted (%.0f s so far)", len(fitted),
+                 decomposition.n_charts_, time.perf_counter() - started)
+    return fitted, faults
 
 
 class ChartsAhead:

@@ -231,8 +231,8 @@ class ChartsAhead:
     """Charts embedded ahead (`embed_chart`) by idle workers: once the decomposition's future
     is back, each of its charts in turn, one a worker at a time, until `stop`. A one-chart fit
     searching its net leaves the workers idle for seconds (rough 20k: 4 s after the
-    decomposition); an atlas's chart then starts from its network (embedding and boundary
-    sampling: a third of a chart's fit)."""
+    decomposition); an atlas's chart embedded ahead starts at training its network (the
+    embedding and boundary sampling it skips are a third of a chart's fit)."""
 
     def __init__(self, workers, n_workers: int, decomposition, points, **params):
         self.params = params  # `embed_chart`'s: a fit with others cannot take them up

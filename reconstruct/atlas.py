@@ -303,7 +303,13 @@ class AtlasReconstructor(BaseEstimator):
             points = self._charted(points)
             decomposition = self._decomposition().fit(points)
         else:
-            points, decomposition = begun[0], begun[1].result()
+            points = begun[0]
+            try:
+                decomposition = begun[1].result()
+            except Exception as exc:  # noqa: BLE001 - a dead worker; or the error, again, here
+                log.warning("decomposing in a worker failed (%s); decomposing here",
+                            one_line(exc))
+                decomposition = self._decomposition().fit(points)
             if begun[2] is not None:
                 embedded = begun[2].stop(collect=True)
                 if begun[2].params == self._embed_params():

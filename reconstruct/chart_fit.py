@@ -166,17 +166,27 @@ def fit_charts(clouds: list[np.ndarray], workers=None, embedded=None, **params) 
         return [fit_chart(cloud, embedded=ahead, **params)
                 for cloud, ahead in zip(clouds, embedded, strict=True)]
     largest_first = np.argsort([-len(cloud) for cloud in clouds], kind="stable")
-    futures = {i: workers.submit(fit_chart, clouds[i], embedded=embedded[i], **params)
-               for i in largest_first}
+    try:
+        futures = {i: workers.submit(fit_chart, clouds[i], embedded=embedded[i], **params)
+                   for i in largest_first}
+    except RuntimeError as exc:  # the pool broke while idle (a worker killed)
+        log.warning("chart workers unavailable (%s); fitting the charts here", one_line(exc))
+        return fit_charts(clouds, None, embedded, **params)
     results = {}
     with single_threaded():  # one core here, the others the workers'
         for i in largest_first[::-1]:
             if not futures[i].cancel():  # a worker has it, and every larger one
                 break
             results[i] = fit_chart(clouds[i], embedded=embedded[i], **params)
-    for i, future in futures.items():
-        if i not in results:
-            results[i] = future.result()
+        for i, future in futures.items():
+            if i not in results:
+                try:
+                    results[i] = future.result()
+                except Exception as exc:  # noqa: BLE001 - the worker died: `fit_chart` itself
+                    # returns a chart's own failure
+                    log.warning("a chart worker failed (%s); fitting its chart here",
+                                one_line(exc))
+                    results[i] = fit_chart(clouds[i], embedded=embedded[i], **params)
     return [results[i] for i in range(len(clouds))]
 
 

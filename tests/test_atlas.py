@@ -4,14 +4,17 @@ closed, open at borders and holes (reconstruct.atlas, reconstruct.join)."""
 import multiprocessing
 import time
 import warnings
+from concurrent.futures import Future
 from concurrent.futures import wait as wait_for
 
 import numpy as np
 import pytest
 import trimesh
+from failing_pools import BrokenPool, LostWorkers
 from joblib import effective_n_jobs
 
 from reconstruct.atlas import AtlasReconstructor
+from reconstruct.chart_fit import fit_charts
 from reconstruct.chart_sides import THIN_SHARE, ChartSides, behind_share, thin_charts
 from reconstruct.errors import (
     FitError,
@@ -326,6 +329,40 @@ def test_charts_embedded_ahead_are_taken_up_with_their_k_only(monkeypatch):
     other.set_params(n_neighbors=10).fit(points)
     assert not other.faults_
     np.testing.assert_array_equal(plain.mesh_.faces, other.mesh_.faces)
+    assert multiprocessing.active_children() == []
+
+
+@pytest.mark.parametrize(("workers", "said"), [
+    (BrokenPool(), "chart workers unavailable (the pool is broken); fitting the charts here"),
+    (LostWorkers(), "a chart worker failed (worker killed); fitting its chart here"),
+])
+def test_charts_whose_workers_fail_are_fitted_here(workers, said, caplog):
+    points = holed_patch(n=1500)
+    decomposition = AtlasReconstructor(chart_size=500)._decomposition().fit(points)
+    clouds = [points[decomposition.chart(i)] for i in range(decomposition.n_charts_)]
+    params = dict(lam=1.0, depth=2, random_state=0, n_neighbors=10, hidden_layers=(6,))
+    here = fit_charts(clouds, None, **params)
+    with caplog.at_level("WARNING", "reconstruct.chart_fit"):
+        failed = fit_charts(clouds, workers, **params)
+    assert said in caplog.text
+    assert len(failed) == len(here) >= 2
+    for (chart, _), (again, _) in zip(here, failed, strict=True):
+        np.testing.assert_array_equal(chart.mesh_.vertices, again.mesh_.vertices)
+
+
+def test_a_decomposition_begun_in_a_worker_that_died_is_done_here(caplog):
+    points = holed_patch(n=1500)
+    params = dict(chart_size=500, n_neighbors=10, hidden_layers=(6,))
+    plain = AtlasReconstructor(n_jobs=1, **params).fit(points)
+    started = AtlasReconstructor(n_jobs=2, **params).start(points)
+    wait_for([started._started.decomposition])
+    lost = Future()
+    lost.set_exception(RuntimeError("worker killed"))
+    started._started = started._started._replace(decomposition=lost)
+    with caplog.at_level("WARNING", "reconstruct.atlas"):
+        started.fit(points)
+    assert "decomposing in a worker failed (worker killed); decomposing here" in caplog.text
+    np.testing.assert_array_equal(plain.mesh_.faces, started.mesh_.faces)
     assert multiprocessing.active_children() == []
 
 

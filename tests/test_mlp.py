@@ -4,6 +4,7 @@ import pickle
 
 import numpy as np
 import pytest
+from failing_pools import BrokenPool, LostWorkers
 
 from reconstruct.errors import InvalidInputError, NotFittedError
 from reconstruct.mlp import SPLIT, AdaptiveMLP
@@ -260,27 +261,9 @@ def test_final_fits_in_a_worker_process_give_the_same_net_as_here(caplog, monkey
     assert [r["epochs"] for r in here.history_] == [r["epochs"] for r in elsewhere.history_]
 
 
-class _LostWorkers:
-    """An executor whose every worker dies (as one killed or out of memory would)."""
-
-    def submit(self, *_, **__):
-        from concurrent.futures import Future
-
-        future = Future()
-        future.set_exception(RuntimeError("worker killed"))
-        return future
-
-
-class _BrokenPool:
-    """An executor whose pool broke while idle: submitting raises (as loky's does)."""
-
-    def submit(self, *_, **__):
-        raise RuntimeError("the pool is broken")
-
-
 @pytest.mark.parametrize(("pool", "said"), [
-    (_BrokenPool(), "workers unavailable (the pool is broken); training here"),
-    (_LostWorkers(), "worker failed (worker killed); training it here"),
+    (BrokenPool(), "workers unavailable (the pool is broken); training here"),
+    (LostWorkers(), "worker failed (worker killed); training it here"),
 ])
 def test_final_fits_whose_workers_fail_are_trained_here(pool, said, caplog):
     uv, xyz = paraboloid(1000)

@@ -172,7 +172,7 @@ def fit_charts(clouds: list[np.ndarray], workers=None, embedded=None, **params) 
     except RuntimeError as exc:  # the pool broke while idle (a worker killed)
         log.warning("chart workers unavailable (%s); fitting the charts here", one_line(exc))
         return fit_charts(clouds, None, embedded, **params)
-    results = {}
+    results, said = {}, False
     with single_threaded():  # one core here, the others the workers'
         for i in largest_first[::-1]:
             if not futures[i].cancel():  # a worker has it, and every larger one
@@ -184,8 +184,10 @@ def fit_charts(clouds: list[np.ndarray], workers=None, embedded=None, **params) 
                     results[i] = future.result()
                 except Exception as exc:  # noqa: BLE001 - the worker died: `fit_chart` itself
                     # returns a chart's own failure
-                    log.warning("a chart worker failed (%s); fitting its chart here",
-                                one_line(exc))
+                    if not said:  # once: a dead worker breaks the pool, and every chart left
+                        log.warning("a chart worker failed (%s); fitting its charts here",
+                                    one_line(exc))
+                        said = True
                     results[i] = fit_chart(clouds[i], embedded=embedded[i], **params)
     return [results[i] for i in range(len(clouds))]
 

@@ -334,7 +334,7 @@ def test_charts_embedded_ahead_are_taken_up_with_their_k_only(monkeypatch):
 
 @pytest.mark.parametrize(("workers", "said"), [
     (BrokenPool(), "chart workers unavailable (the pool is broken); fitting the charts here"),
-    (LostWorkers(), "a chart worker failed (worker killed); fitting its chart here"),
+    (LostWorkers(), "a chart worker failed (worker killed); fitting its charts here"),
 ])
 def test_charts_whose_workers_fail_are_fitted_here(workers, said, caplog):
     points = holed_patch(n=1500)
@@ -345,6 +345,7 @@ def test_charts_whose_workers_fail_are_fitted_here(workers, said, caplog):
     with caplog.at_level("WARNING", "reconstruct.chart_fit"):
         failed = fit_charts(clouds, workers, **params)
     assert said in caplog.text
+    assert len(caplog.records) == 1  # one line, however many charts
     assert len(failed) == len(here) >= 2
     for (chart, _), (again, _) in zip(here, failed, strict=True):
         np.testing.assert_array_equal(chart.mesh_.vertices, again.mesh_.vertices)

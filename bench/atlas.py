@@ -32,15 +32,15 @@ from bench.baselines import ball_pivoting, open3d_available, poisson  # noqa: E4
 from reconstruct.mesh_edges import border_loops  # noqa: E402
 from reconstruct.metrics import surface_report  # noqa: E402
 from reconstruct.pipeline import SurfaceReconstructor  # noqa: E402
-from sim.awkward_objects import AWKWARD, GENUS, relief, sample_cloud  # noqa: E402
+from sim.awkward_objects import AWKWARD, GENUS, UNTUNED, relief, sample_cloud  # noqa: E402
 
 #: (object, noise as a share of the diagonal): closed objects at σ 0.5 %, the relief at 1 %.
-CASES = {**{name: 0.005 for name in AWKWARD}, "relief": 0.01}
-CLOSED = set(AWKWARD) - {"sheets"}
+CASES = {**{name: 0.005 for name in {**AWKWARD, **UNTUNED}}, "relief": 0.01}
+CLOSED = (set(AWKWARD) - {"sheets"}) | set(UNTUNED)
 
 
 def truth(name: str):
-    return relief() if name == "relief" else AWKWARD[name]()
+    return relief() if name == "relief" else {**AWKWARD, **UNTUNED}[name]()
 
 
 def loop_lengths(mesh) -> np.ndarray:

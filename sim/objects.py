@@ -11,7 +11,7 @@ import trimesh
 
 from drivers.errors import DeviceError
 
-from .awkward_objects import AWKWARD
+from .awkward_objects import AWKWARD, UNTUNED
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +71,7 @@ def box(subdivisions: int = 6) -> trimesh.Trimesh:
     return mesh
 
 
-BUILT_IN = {"vase": vase, "bust": bust, "box": box, **AWKWARD}
+BUILT_IN = {"vase": vase, "bust": bust, "box": box, **AWKWARD, **UNTUNED}
 DEFAULT_OBJECT = "vase"
 
 
@@ -87,8 +87,9 @@ def stand_on_plate(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
 
 
 def load_object(name_or_path: str | Path | None = None) -> trimesh.Trimesh:
-    """A built-in object by name (``vase``, ``bust``, ``box`` or one of `AWKWARD`: ``mug``,
-    ``torus``, ``figurine``, ``hook``, ``sheets``) or any mesh file trimesh reads
+    """A built-in object by name (``vase``, ``bust``, ``box``, one of `AWKWARD`: ``mug``,
+    ``torus``, ``figurine``, ``hook``, ``sheets``, or of `UNTUNED`: ``chair``, ``knot``) or
+    any mesh file trimesh reads
     (units: mm), stood on the plate. Raises `ObjectError` with a one-line cause."""
     name = str(name_or_path or DEFAULT_OBJECT)
     if name in BUILT_IN:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from sim.awkward_objects import AWKWARD, GENUS, sample_cloud
+from sim.awkward_objects import AWKWARD, GENUS, UNTUNED, sample_cloud
 from sim.objects import load_object
 
 
@@ -19,7 +19,7 @@ def crossings_from_axis(mesh: trimesh.Trimesh, heights, n_angles=24) -> int:
     return int(np.bincount(rays, minlength=len(origins)).max())
 
 
-@pytest.mark.parametrize("name", sorted(AWKWARD))
+@pytest.mark.parametrize("name", sorted({**AWKWARD, **UNTUNED}))
 def test_object_is_closed_oriented_and_of_its_genus(name):
     mesh = load_object(name)
     assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
@@ -30,7 +30,7 @@ def test_object_is_closed_oriented_and_of_its_genus(name):
     assert mesh.bounds[0, 2] == pytest.approx(0.0)
 
 
-@pytest.mark.parametrize("name", sorted(AWKWARD))
+@pytest.mark.parametrize("name", sorted({**AWKWARD, **UNTUNED}))
 def test_object_is_not_star_shaped_about_the_axis(name):
     mesh = load_object(name)
     heights = np.linspace(0.05, 0.95, 19) * mesh.bounds[1, 2]

@@ -150,9 +150,31 @@ def test_the_plates_stay_apart_where_128_neighbours_see_one_layer():
     inner = (clean[:, 2] > 15) & (clean[:, 2] < 100) & (np.abs(clean[:, 1]) < 45)
     plate = (clean[inner, 0] > 0).astype(int)
     graph = SheetGraph().fit(points)
-    assert graph.layered_[inner].mean() > 0.99
+    # (points whose own 64 neighbours hold one plate are left whole: `ONE_LAYER_RATIO`)
+    assert graph.layered_[inner].mean() > 0.9
     # the plates' faces, without their rims and foot: each of the two largest pieces is one
     # plate (points the noise moved onto the other plate join it; measured 0.9996, 128
     # neighbours only: 0.51, one piece holding both plates)
     purity, covered = sheet_purity(graph.graph_[inner][:, inner], plate)
     assert purity > 0.99 and covered > 0.6
+
+
+def test_a_slab_s_faces_stay_joined_where_a_neighbourhood_holds_one_layer():
+    # An 80 mm slab 6 mm (10 noise widths) thick: 128 neighbours see its two faces, 64 only
+    # near its rim. A face point borrowed into the layered region, split along its donor's
+    # normal, had its one layer cut through the middle and the points near the cut joined
+    # nothing: 32 % of the faces' inner points (27 % with `ONE_LAYER_RATIO`; the rest lie
+    # within reach of the rim, where 64 neighbours hold both faces).
+    import trimesh
+
+    slab = trimesh.creation.box((80, 80, 6.0))
+    rng = np.random.default_rng(0)
+    clean, _ = trimesh.sample.sample_surface(slab, 16000, seed=rng.integers(2**31))
+    points = clean + rng.normal(0, 0.005 * np.linalg.norm(slab.extents), clean.shape)
+    graph = SheetGraph().fit(points)
+    inner = (np.abs(clean[:, :2]).max(axis=1) < 30) & (np.abs(clean[:, 2]) > 2.99)
+    joined = np.diff(graph.graph_.indptr) > 0
+    assert joined[inner].mean() > 0.70
+    faces = np.abs(clean[:, 2]) > 2.99  # not the rim, which joins the faces
+    side = (clean[faces, 2] > 0).astype(int)
+    assert cross_share(graph.graph_[faces][:, faces], side) == 0  # the faces stay apart

@@ -24,7 +24,7 @@ import numpy as np
 from joblib import effective_n_jobs
 from joblib.externals.loky import ProcessPoolExecutor
 
-from .errors import ReconstructionWarning
+from .errors import FitError, InvalidInputError, ReconstructionWarning
 from .faithfulness import FOLD_LIMIT, UNEXPLAINED_LIMIT, fold_share
 from .io import one_line
 from .meshing import default_spacing
@@ -122,7 +122,13 @@ def ready_to_remesh(chart) -> None:
     try:
         for saved_depth in SAVED_DEPTHS:
             chart.depth = saved_depth
-            chart._boundary_points()
+            try:
+                chart._boundary_points()
+            except (InvalidInputError, FitError) as exc:  # a small chart's boundary at a
+                # depth it was not fitted with: a re-mesh to that depth says so itself
+                log.info("chart of %d points: no boundary at depth %d (%s)",
+                         len(chart.points_), saved_depth, one_line(exc))
+                chart._boundary_cache.pop((chart.boundary, saved_depth, chart.n_corners), None)
     finally:
         chart.depth = depth
 

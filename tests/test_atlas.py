@@ -563,3 +563,25 @@ def test_a_hole_in_the_charts_where_data_lies_leaves_the_charts_one_sided():
                                      voxel=0.4, chart_points=chart_points)
     assert sides.closed_ and not sides.shells_.any()
     assert (sides.votes_ > 0.9).all()
+
+
+def test_a_chart_with_too_few_interpolants_at_a_saved_depth_is_kept(monkeypatch):
+    # A 36-view knot scan's atlas failed whole: one small chart's boundary at depth 3 (sampled
+    # for quick re-meshes, not the depth fitted) had 7 interpolants, and the spline's error
+    # escaped `fit_chart`. The chart is kept; a re-mesh to that depth says why in one line.
+    points = holed_patch(n=1500)
+    original = SurfaceReconstructor._boundary_points
+
+    def few_at_depth_3(self):
+        if self.depth == 3:
+            raise InvalidInputError("7 distinct boundary interpolants; the spline needs 8")
+        return original(self)
+
+    monkeypatch.setattr(SurfaceReconstructor, "_boundary_points", few_at_depth_3)
+    params = dict(lam=1.0, depth=2, random_state=0, n_neighbors=10, hidden_layers=(6,))
+    [(chart, fault)] = fit_charts([points], None, **params)
+    assert chart is not None and fault is None
+    assert {key[1] for key in chart._boundary_cache if isinstance(key, tuple)} == {1, 2}
+    chart.remesh(depth=1)
+    with pytest.raises(InvalidInputError, match="needs 8"):
+        chart.remesh(depth=3)

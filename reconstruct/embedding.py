@@ -69,7 +69,9 @@ class SurfaceEmbedding(BaseEstimator):
 
     Fitted attributes: ``embedding_`` (m, 2) float64 in the cloud's length unit (geodesic
     distances; modified LLE is scaled to them by least squares), ``support_`` (n,) bool (inlier
-    and in the largest piece of the graph), ``method_``, ``n_neighbors_``, ``residual_variance_``
+    and in the largest piece of the graph), ``inliers_`` (n,) bool (not an outlier, in any
+    piece: the points the embedded surface must account for), ``method_``, ``n_neighbors_``,
+    ``residual_variance_``
     (1 - R^2 of geodesic vs embedded distances), ``landmarks_`` (indices into the embedded
     points: the landmarks of landmark Isomap; otherwise the points whose geodesic distances
     scored ``residual_variance_``).
@@ -111,6 +113,7 @@ class SurfaceEmbedding(BaseEstimator):
             k = min(int(self.n_neighbors), len(kept) - 1)
             distances, indices = nearest_neighbors(points[kept], k)
         graph = knn_graph(distances, indices, k)
+        self.inliers_ = support.copy()
         in_piece = self._largest_piece(graph)
         if not in_piece.all():
             kept, graph = kept[in_piece], graph[in_piece][:, in_piece].tocsr()

@@ -26,7 +26,13 @@ from sklearn.base import BaseEstimator, clone
 from .alignment import align_to
 from .boundary import MultiDepthBoundary, PCABoundary, boundary_geometry
 from .embedding import SurfaceEmbedding
-from .errors import InvalidInputError, NotFittedError, ReconstructionWarning, WarmStartRefused
+from .errors import (
+    FitError,
+    InvalidInputError,
+    NotFittedError,
+    ReconstructionWarning,
+    WarmStartRefused,
+)
 from .faithfulness import (
     BRIDGE_LIMIT,
     UNEXPLAINED_LIMIT,
@@ -146,7 +152,9 @@ class SurfaceReconstructor(BaseEstimator):
     ``mlp_`` (`AdaptiveMLP`; not after `load`), ``embedding_method_``, ``n_neighbors_``,
     ``surface_map_`` (OnnxSurfaceMap), ``hidden_layers_``, ``mesh_`` (trimesh.Trimesh),
     ``boundary_points_`` (k, 2), ``spline_`` (BoundarySpline), ``vertices_2d_`` (v, 2),
-    ``unexplained_`` share of the points the mesh leaves farther than their noise allows and
+    ``unexplained_`` share of the points (the outliers aside, those of every piece of the
+    neighbourhood graph, though only the largest is fitted) the mesh leaves farther than their
+    noise allows and
     ``neighbour_preservation_`` of the embedding (`reconstruct.faithfulness`; a
     `ReconstructionWarning` when the share is over 5 %).
     ``timings_`` (seconds per stage of the last fit / remesh: embedding, search, final fits,
@@ -239,7 +247,11 @@ class SurfaceReconstructor(BaseEstimator):
         sampler.__dict__.update(embedding_=embedding.embedding_, _boundary_cache={})
         for depth in depths:
             sampler.depth = depth
-            sampler._boundary_points()
+            try:
+                sampler._boundary_points()
+            except (InvalidInputError, FitError):  # too few interpolants at this depth: a
+                sampler._boundary_cache.pop(  # fit or re-mesh there says so itself
+                    (self.boundary, depth, self.n_corners), None)
         return Embedded(points, embedding, sampler._boundary_cache, self._embedding_key())
 
     def _embedding_key(self) -> tuple:
@@ -295,6 +307,9 @@ class SurfaceReconstructor(BaseEstimator):
         or the atlas (``spare``: begun by `AtlasReconstructor.warm` and `start`) when they say
         so."""
         explained = None  # the distance that explains a point: measured once, if early
+        # Points of the graph's other pieces count: a cloud the embedding kept only the largest
+        # piece of (a sector of a knot crossing it twice) is not explained by its mesh.
+        assessed = points[embedding.inliers_]
         if warm_start is None:
             mlp = self._new_mlp().search(uv, fitted)
             if self.atlas == "auto" and mlp.hidden_layers is None:  # the searched net's mesh
@@ -303,7 +318,7 @@ class SurfaceReconstructor(BaseEstimator):
                 self.remesh()
                 explained = explained_distance(fitted)
                 reason = self._atlas_reason(
-                    points, unexplained_fraction(self.mesh_, fitted, threshold=explained),
+                    points, unexplained_fraction(self.mesh_, assessed, threshold=explained),
                     mlp.hidden_layers_, embedding.n_neighbors_, limit=2 * UNEXPLAINED_LIMIT)
                 if reason is not None:  # plainly one chart cannot hold it: no final fits
                     return self._fit_atlas(*reason, atlas=spare)
@@ -322,7 +337,9 @@ class SurfaceReconstructor(BaseEstimator):
         self.hidden_layers_ = tuple(mlp.hidden_layers_)
         self.timings_.update(getattr(mlp, "timings_", {}))
         self.remesh()
-        self.unexplained_ = unexplained_fraction(self.mesh_, self.points_, threshold=explained)
+        if explained is None:
+            explained = explained_distance(fitted)
+        self.unexplained_ = unexplained_fraction(self.mesh_, assessed, threshold=explained)
         if warm_start is None and self.atlas == "auto":
             reason = self._atlas_reason(points, self.unexplained_, self.hidden_layers_,
                                         self.n_neighbors_)

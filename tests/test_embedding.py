@@ -233,6 +233,7 @@ def test_graph_in_pieces(caplog):
     with pytest.warns(ReconstructionWarning, match=r"2 pieces; reconstructing the largest \(700"):
         model = SurfaceEmbedding(method="isomap").fit(np.vstack([big, small]))
     assert model.support_[:700].all() and not model.support_[700:].any()
+    assert model.inliers_[700:].mean() > 0.95  # no outliers: a mesh must account for them
     with pytest.raises(DegenerateCloudError, match="pieces"):
         pieces = [plane(400), plane(350, seed=2) + [4.0, 0, 0], plane(250, seed=3) + [0, 4.0, 0]]
         SurfaceEmbedding().fit(np.vstack(pieces))

@@ -24,7 +24,7 @@ import numpy as np
 from joblib import effective_n_jobs
 from joblib.externals.loky import ProcessPoolExecutor
 
-from .errors import FitError, InvalidInputError, ReconstructionWarning
+from .errors import ReconstructionWarning
 from .faithfulness import FOLD_LIMIT, UNEXPLAINED_LIMIT, fold_share
 from .io import one_line
 from .meshing import default_spacing
@@ -118,19 +118,7 @@ def ready_to_remesh(chart) -> None:
         warnings.simplefilter("ignore", ReconstructionWarning)  # said by the fit already
         if chart.grid_spacing is None:
             chart.remesh(grid_spacing=default_spacing(chart.outline_, len(chart.embedding_)))
-    depth = chart.depth
-    try:
-        for saved_depth in SAVED_DEPTHS:
-            chart.depth = saved_depth
-            try:
-                chart._boundary_points()
-            except (InvalidInputError, FitError) as exc:  # a small chart's boundary at a
-                # depth it was not fitted with: a re-mesh to that depth says so itself
-                log.info("chart of %d points: no boundary at depth %d (%s)",
-                         len(chart.points_), saved_depth, one_line(exc))
-                chart._boundary_cache.pop((chart.boundary, saved_depth, chart.n_corners), None)
-    finally:
-        chart.depth = depth
+    chart.sample_boundaries(SAVED_DEPTHS)
 
 
 def chart_workers(n_jobs: int | None, warm: bool = True):

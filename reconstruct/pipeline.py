@@ -245,13 +245,7 @@ class SurfaceReconstructor(BaseEstimator):
         embedding = self._embedding_estimator(self.n_neighbors).fit(points)
         sampler = copy.copy(self)  # samples with this one's parameters, into a cache of its own
         sampler.__dict__.update(embedding_=embedding.embedding_, _boundary_cache={})
-        for depth in depths:
-            sampler.depth = depth
-            try:
-                sampler._boundary_points()
-            except (InvalidInputError, FitError):  # too few interpolants at this depth: a
-                sampler._boundary_cache.pop(  # fit or re-mesh there says so itself
-                    (self.boundary, depth, self.n_corners), None)
+        sampler.sample_boundaries(depths)
         return Embedded(points, embedding, sampler._boundary_cache, self._embedding_key())
 
     def _embedding_key(self) -> tuple:
@@ -541,6 +535,23 @@ class SurfaceReconstructor(BaseEstimator):
         if "tree" not in cache:
             cache["tree"] = cKDTree(self.embedding_)
         return extend_outline(polygon, factor * border_spacing(polygon, cache["tree"]))
+
+    def sample_boundaries(self, depths) -> None:
+        """Sample the boundary at each of ``depths`` into the cache (`_boundary_points`), so a
+        re-mesh to one of them need not. A depth with too few interpolants for the spline (a
+        small chart at a depth it was not fitted with) is skipped: a re-mesh there says so
+        itself. ``depth`` is left as it was."""
+        fitted_depth = self.depth
+        try:
+            for depth in depths:
+                self.depth = depth
+                try:
+                    self._boundary_points()
+                except (InvalidInputError, FitError) as exc:
+                    log.info("no boundary at depth %d (%s)", depth, one_line(exc))
+                    self._boundary_cache.pop((self.boundary, depth, self.n_corners), None)
+        finally:
+            self.depth = fitted_depth
 
     def _boundary_points(self) -> tuple[np.ndarray, SplineInput]:
         """The boundary interpolants (k, 2) of the present boundary parameters, and their

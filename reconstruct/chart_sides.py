@@ -110,7 +110,7 @@ class UnchartedTracker:
 
 
 #: Beyond this share of the samples moved, `UnchartedTracker` looks every point up again.
-_MOVED_SHARE = 0.25
+_MOVED_SHARE = 0.1
 
 
 def _crowded(far: np.ndarray, spacing: float) -> np.ndarray:

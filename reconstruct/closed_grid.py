@@ -33,6 +33,7 @@ from .grid_steps import (
     farther_than,
     flat_of,
     free_pockets,
+    grey_opening3,
     grown,
     occupancy,
     pockets_outside,
@@ -257,8 +258,11 @@ class ClosedSDF:
         if not exterior.any():
             return np.full(exterior.shape, -limit)
         # beyond seal + band + 1 voxels the value is clipped: the distance is needed only within
-        distance = np.sqrt(squared_distance(exterior, self._seal + self.band + 1))
-        return np.clip(self._seal * self.voxel - self.voxel * distance, -limit, limit)
+        squared = squared_distance(exterior, self._seal + self.band + 1)
+        # the value of each squared distance (a few hundred at most), looked up
+        value = np.clip(self._seal * self.voxel
+                        - self.voxel * np.sqrt(np.arange(int(squared.max()) + 1.0)), -limit, limit)
+        return value[squared]
 
     def _evaluate(self, flat: np.ndarray) -> None:
         """The planes' distance at the nodes ``flat``, and what the blend and the opening need
@@ -298,19 +302,27 @@ class ClosedSDF:
     def _holding(self, box: tuple[slice, ...]) -> np.ndarray:
         """(box) bool: nodes straight in front of a kept-open sample, which the opening may not
         fill."""
-        return (~self._free[box] & self._held[box]
-                & self._front(self._planes[box], self._nearest[box], self._ahead[box]))
+        held = ~self._free[box] & self._held[box]
+        at = np.nonzero(held)  # few: the nodes near kept-open samples
+        held[at] = self._front(self._planes[box][at], self._nearest[box][at],
+                               self._ahead[box][at])
+        return held
 
     def _smoothed(self, values: np.ndarray, held: np.ndarray) -> np.ndarray:
         """``values`` opened, smoothed and kept off the level (`_OFF_LEVEL`)."""
         if _OPEN:
-            opened = ndimage.grey_opening(values, size=(_OPEN,) * 3)
+            opened = (grey_opening3(values) if _OPEN == 3
+                      else ndimage.grey_opening(values, size=(_OPEN,) * 3))
             opened[held] = np.maximum(opened[held], values[held])
             values = opened
         if _SMOOTH:
             values = ndimage.gaussian_filter(values, _SMOOTH)
+        if not (_OPEN or _SMOOTH):
+            values = values.copy()  # (the caller's, set off the level below)
         floor = _OFF_LEVEL * self.voxel
-        return np.where(np.abs(values) < floor, np.where(values < 0, -floor, floor), values)
+        near_level = np.abs(values) < floor
+        values[near_level] = np.where(values[near_level] < 0, -floor, floor)
+        return values
 
     def _update_free(self, cells: np.ndarray) -> np.ndarray:
         """Re-derive ``_free`` round the occupancy's changed ``cells``; returns the flat indices

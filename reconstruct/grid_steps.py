@@ -27,26 +27,61 @@ VOTE_NEIGHBOURS = 16
 
 
 def squared_distance(targets: np.ndarray, radius: float) -> np.ndarray:
-    """(shape) int32: each node's squared Euclidean distance, in nodes, to the nearest True
-    node of ``targets``, exact where it is at most ``radius``² and above it (not exact)
+    """(shape) unsigned ints: each node's squared Euclidean distance, in nodes, to the nearest
+    True node of ``targets``, exact where it is at most ``radius``² and above it (not exact)
     elsewhere. Three separable passes of minima over the shifts of up to ⌊radius⌋ nodes (no
-    farther shift along one axis can be within ``radius``). scipy's exact transform of the
-    whole grid, ``distance_transform_edt(~targets)``, gives the same within ``radius``; the
-    join only needs it within a few voxels, and this took a fifth to a third of its time on a
-    7-million-node grid (radius 3 and 6)."""
+    farther shift along one axis can be within ``radius``), in the narrowest unsigned type that
+    holds them (uint8 up to radius 7: a 0.9-million-node grid at radius 7 took 28 ms in int32,
+    6 ms in uint8). scipy's exact transform of the whole grid, ``distance_transform_edt(~targets)``,
+    gives the same within ``radius``; the join only needs it within a few voxels, and this took a
+    fifth to a third of its time on a 7-million-node grid (radius 3 and 6)."""
     reach = int(np.floor(radius))
-    far = np.int32(3 * (reach + 1) ** 2)  # farther than radius² and than any sum of in-range
-    squared = np.where(targets, np.int32(0), far)
+    far = 3 * (reach + 1) ** 2  # farther than radius² and than any sum of in-range
+    dtype = next(t for t in (np.uint8, np.uint16, np.uint32)
+                 if far + reach * reach <= np.iinfo(t).max)
+    squared = np.where(targets, dtype(0), dtype(far))
     for axis in range(squared.ndim):
         nearest = squared.copy()
         for shift in range(1, min(reach, squared.shape[axis] - 1) + 1):
             low, high = [slice(None)] * squared.ndim, [slice(None)] * squared.ndim
             low[axis], high[axis] = slice(0, -shift), slice(shift, None)
             low, high = tuple(low), tuple(high)
-            np.minimum(nearest[high], squared[low] + shift * shift, out=nearest[high])
-            np.minimum(nearest[low], squared[high] + shift * shift, out=nearest[low])
+            step = dtype(shift * shift)
+            np.minimum(nearest[high], squared[low] + step, out=nearest[high])
+            np.minimum(nearest[low], squared[high] + step, out=nearest[low])
         squared = nearest
     return squared
+
+
+def grey_opening3(values: np.ndarray) -> np.ndarray:
+    """``ndimage.grey_opening(values, size=3)`` (its default border, 'reflect') node for node:
+    the minimum, then the maximum, of each node's 3-node neighbourhood, one axis at a time,
+    from pairwise extremes (a 0.9-million-node grid: 33 ms in scipy, 7 ms here)."""
+    return _extreme3(_extreme3(values, np.minimum), np.maximum)
+
+
+def _extreme3(values: np.ndarray, extreme) -> np.ndarray:
+    """Each node's ``extreme`` (np.minimum or np.maximum) over its 3-node neighbourhood along
+    every axis in turn; a neighbour beyond the border is the node itself."""
+    for axis in range(values.ndim):
+        if values.shape[axis] < 2:
+            continue
+        head = [slice(None)] * values.ndim
+        tail = [slice(None)] * values.ndim
+        head[axis], tail[axis] = slice(0, -1), slice(1, None)
+        pairs = extreme(values[tuple(head)], values[tuple(tail)])  # node i and i + 1
+        result = np.empty_like(values)
+        first, last = list(head), list(head)
+        first[axis], last[axis] = slice(0, 1), slice(-1, None)
+        result[tuple(first)] = pairs[tuple(first)]
+        last_out = [slice(None)] * values.ndim
+        last_out[axis] = slice(-1, None)
+        result[tuple(last_out)] = pairs[tuple(last)]
+        inner = [slice(None)] * values.ndim
+        inner[axis] = slice(1, -1)
+        extreme(pairs[tuple(head)], pairs[tuple(tail)], out=result[tuple(inner)])
+        values = result
+    return values
 
 
 def farther_than(targets: np.ndarray, radius: float) -> np.ndarray:

@@ -74,8 +74,10 @@ def border_spacing(polygon: np.ndarray, tree: cKDTree, k: int = 16, n_stations: 
     inside = rasterize(polygon, origin, step, (rows, columns))
     probes = stations[:, None, :] + radius[:, None, None] * _PATTERN  # (s, pattern, 2)
     node = np.rint((probes - origin) / step).astype(np.int64)
-    framed = np.pad(inside, 1)  # a probe off the raster reads its frame: outside
-    held = framed[np.clip(node[..., 1], -1, rows) + 1, np.clip(node[..., 0], -1, columns) + 1]
+    column, row = node[..., 0], node[..., 1]
+    on = (column >= 0) & (column < columns) & (row >= 0) & (row < rows)
+    held = np.zeros(on.shape, bool)  # a probe off the raster is outside (no padded copy of it)
+    held[on] = inside[row[on], column[on]]
     area = held.mean(axis=1) * np.pi * radius**2
     spacing = np.sqrt(area[area > 0] / k)
     if len(spacing) == 0:

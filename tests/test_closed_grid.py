@@ -4,11 +4,12 @@ node for node, and it gives the same mesh (reconstruct.closed_grid)."""
 import numpy as np
 import pytest
 import trimesh
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from reconstruct.chart_sides import UnchartedTracker, uncharted_points
 from reconstruct.closed_grid import BOX_SLACK, ClosedSDF
-from reconstruct.grid_steps import farther_than, squared_distance, voter_sides
+from reconstruct.grid_steps import farther_than, grey_opening3, squared_distance, voter_sides
 from reconstruct.join import implicit_mesh
 
 GRIDS = ["_occupied", "_free", "_exterior", "_closing", "_planes", "_nearest", "_ahead",
@@ -134,20 +135,27 @@ def test_a_mesh_kept_by_an_earlier_revision_of_the_join_is_not_given_back():
     assert not older.hit_ and np.array_equal(again.vertices, first.vertices)
 
 
-@pytest.mark.parametrize("radius", [0.5, 1.0, 2.9, 3.0, np.sqrt(10.0), 4.5, 6.0, 7.0])
+@pytest.mark.parametrize("radius", [0.5, 1.0, 2.9, 3.0, np.sqrt(10.0), 4.5, 6.0, 7.0, 8.0, 12.5])
 def test_capped_distances_are_scipys_within_their_radius(radius):
-    from scipy import ndimage
 
     rng = np.random.default_rng(int(radius * 10))
     for shape, share in (((40, 31, 17), 0.002), ((5, 60, 3), 0.02), ((9, 9, 9), 0.0015)):
         targets = rng.random(shape) < share
         targets.flat[rng.integers(targets.size)] = True
         exact = ndimage.distance_transform_edt(~targets)
-        capped = np.sqrt(squared_distance(targets, radius))
+        capped = np.sqrt(squared_distance(targets, radius).astype(float))
         near = exact <= radius
         np.testing.assert_array_equal(capped[near], exact[near])  # bit for bit
         assert (capped[~near] > radius).all()
         np.testing.assert_array_equal(farther_than(targets, radius), exact > radius)
+
+
+@pytest.mark.parametrize("shape", [(1, 5, 7), (2, 2, 2), (9, 1, 4), (17, 12, 9), (3, 30, 5)])
+def test_the_opening_is_scipys_node_for_node(shape):
+    values = np.random.default_rng(sum(shape)).normal(size=shape)
+    values[0, 0, 0] = values[-1, -1, -1] = 9.0  # extremes on the border
+    np.testing.assert_array_equal(grey_opening3(values),
+                                  ndimage.grey_opening(values, size=(3, 3, 3)))
 
 
 def test_the_uncharted_tracker_finds_what_a_fresh_look_finds():

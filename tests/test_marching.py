@@ -64,3 +64,23 @@ def test_values_on_the_level_march_the_whole_grid_as_skimage_does():
         expected_vertices, expected_faces = whole(grid, 0.5)
         np.testing.assert_array_equal(vertices, expected_vertices)
         np.testing.assert_array_equal(faces, expected_faces)
+
+
+def test_changes_all_over_keep_only_the_grid_and_a_local_change_after_them_is_followed():
+    rng = np.random.default_rng(1)
+    values = sphere() + rng.normal(0, 0.3, (40, 44, 48))
+    march = KeptMarch()
+    steps = [values + rng.normal(0, 0.3, values.shape) for _ in range(3)]  # all over
+    local = steps[-1].copy()
+    local[10:14, 12:15, 20:23] += 0.8
+    steps += [local, local + np.where(np.arange(48) == 30, 0.5, 0.0)]
+    followed, kept = [], []
+    for grid in steps:
+        vertices, faces = march(grid, 0.5)
+        expected_vertices, expected_faces = whole(grid, 0.5)
+        np.testing.assert_array_equal(vertices, expected_vertices)
+        np.testing.assert_array_equal(faces, expected_faces)
+        followed.append(not march.whole_)
+        kept.append("cells" in march._kept)  # what a march to follow needs
+    assert kept == [True, False, False, True, True]
+    assert followed == [False, False, False, False, True]

@@ -380,10 +380,15 @@ class ClosedSDF:
             flat = flat_of(box, near & (marked | (eighth > _LOCAL * self.voxel)), self.shape_)
             index = np.column_stack(np.unravel_index(flat, tuple(self.shape_)))
             bound = self._eighth.flat[flat]
+            # a sample that moved within the tolerance (a chart's vertex a bit apart between
+            # two re-meshes) kept its nodes' distances: a node's eighth may be off by as much
+            # (figurine 22k: such a sample removed later, a node 1 ulp farther from it than its
+            # eighth kept its planes, and the mesh back at the fitted λ was not the fit's)
+            slack = 2 * self._tolerance
             gap = tree.query(self.origin_ + self.voxel * index.astype(float),
-                             distance_upper_bound=self._reach * (1 + 1e-9),
+                             distance_upper_bound=self._reach * (1 + 1e-9) + slack,
                              workers=QUERY_THREADS)[0]
-            candidates.append(flat[gap <= bound])
+            candidates.append(flat[gap <= bound + slack])
         arrived = flipped[~self._free.flat[flipped]]
         evaluated = np.unique(np.concatenate([arrived, *candidates]))
         self._evaluate(evaluated)

@@ -235,9 +235,11 @@ class SparseSDF:
     def _near(self, tree: cKDTree, flat: np.ndarray, bound: float, within=None) -> np.ndarray:
         """The nodes of ``flat`` within ``bound`` of a point of ``tree``, or within their own
         ``within`` (q,) ≤ ``bound``."""
-        gap = tree.query(self._xyz(flat), distance_upper_bound=bound * (1 + 1e-9),
+        # a sample that moved within the tolerance kept its nodes' distances: off by as much
+        slack = 2 * (1e-9 * self.voxel if self.tolerance is None else self.tolerance)
+        gap = tree.query(self._xyz(flat), distance_upper_bound=bound * (1 + 1e-9) + slack,
                          workers=QUERY_THREADS)[0]
-        return flat[gap <= (bound if within is None else within)]
+        return flat[gap <= (bound if within is None else within) + slack]
 
     def _evaluate(self, flat: np.ndarray) -> None:
         # the nodes within band + 1 voxels of a sample: nearly all of those asked (a separate

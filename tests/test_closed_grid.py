@@ -52,6 +52,24 @@ def test_an_update_equals_a_fresh_fit_and_evaluates_only_round_the_change(seal):
     assert_same_grid(grid, fresh)
 
 
+def test_a_sample_moved_within_the_tolerance_then_removed_updates_its_nodes():
+    """A sample that moves by less than the tolerance counts as the same: its nodes keep the
+    distances to where it was. Removed later, every node it was among the 8 nearest of is
+    evaluated again, though such a node is now a little farther from it than its eighth."""
+    samples, normals = torus_samples(3)
+    voxel, tolerance = 0.05, 1e-3 * 0.05
+    grid = ClosedSDF(voxel=voxel, tolerance=tolerance).fit(samples, normals)
+    near = np.linalg.norm(samples - [1.0, 0.0, 0.35], axis=1) < 0.1  # on the top, away
+    drifted = samples.copy()
+    drifted[near] += 0.9 * tolerance * normals[near]  # away from the nodes inside
+    grid.update(drifted, normals)
+    assert grid.n_changed_ == 0
+    keep = ~near
+    grid.update(drifted[keep], normals[keep])
+    fresh = ClosedSDF(voxel=voxel, tolerance=tolerance).fit(drifted[keep], normals[keep])
+    assert_same_grid(grid, fresh)
+
+
 def test_the_box_is_kept_while_the_samples_fit_in_it_and_saved_with_the_state():
     samples, normals = torus_samples(2)
     voxel = 0.05

@@ -36,6 +36,25 @@ def sphere_samples(subdivisions=3):
     return np.asarray(sphere.vertices) + jitter, np.asarray(sphere.vertex_normals)
 
 
+def assert_same_grid(sdf, fresh, voxel, atol=0.0):
+    """Two grids on one lattice, node by node over the union of both boxes."""
+    low = np.minimum(sdf.origin_, fresh.origin_)
+    high = np.maximum(sdf.origin_ + voxel * (sdf.shape_ - 1),
+                      fresh.origin_ + voxel * (fresh.shape_ - 1))
+    size = tuple(np.round((high - low) / voxel).astype(int) + 1)
+
+    def placed(grid, values, fill):
+        out = np.full(size, fill, dtype=values.dtype)
+        at = np.round((grid.origin_ - low) / voxel).astype(int)
+        out[tuple(slice(a, a + n) for a, n in zip(at, grid.shape_, strict=True))] = values
+        return out
+
+    far = voxel * (sdf.band + 1)
+    np.testing.assert_allclose(placed(sdf, sdf.values_, far), placed(fresh, fresh.values_, far),
+                               atol=atol, rtol=0)
+    assert np.array_equal(placed(sdf, sdf.mask_, False), placed(fresh, fresh.mask_, False))
+
+
 def test_the_sparse_grid_equals_the_dense_one():
     samples, normals = sphere_samples(4)
     sdf = SparseSDF(voxel=0.05, band=2.0).fit(samples, normals)
@@ -57,21 +76,22 @@ def test_an_update_equals_a_fresh_fit_and_touches_only_the_change():
     fresh = SparseSDF(voxel=0.1, band=2.0).fit(moved[kept], normals[kept])
     assert sdf.n_changed_ == top.sum() + (len(samples) - len(kept)) + top[kept].sum()
     assert sdf.n_evaluated_ < 0.5 * fresh.n_evaluated_
-    # the two grids lie on one lattice: compare them node by node over the union of both boxes
-    low = np.minimum(sdf.origin_, fresh.origin_)
-    high = np.maximum(sdf.origin_ + 0.1 * (sdf.shape_ - 1),
-                      fresh.origin_ + 0.1 * (fresh.shape_ - 1))
-    size = tuple(np.round((high - low) / 0.1).astype(int) + 1)
+    assert_same_grid(sdf, fresh, 0.1, atol=1e-12)
 
-    def placed(grid, values, fill):
-        out = np.full(size, fill, dtype=values.dtype)
-        at = np.round((grid.origin_ - low) / 0.1).astype(int)
-        out[tuple(slice(a, a + n) for a, n in zip(at, grid.shape_, strict=True))] = values
-        return out
 
-    np.testing.assert_allclose(placed(sdf, sdf.values_, 0.3), placed(fresh, fresh.values_, 0.3),
-                               atol=1e-12)
-    assert np.array_equal(placed(sdf, sdf.mask_, False), placed(fresh, fresh.mask_, False))
+def test_a_sample_moved_within_the_tolerance_then_removed_updates_its_nodes():
+    samples, normals = sphere_samples(2)  # sparse: most nodes' 8th nearest beyond the band
+    voxel, tolerance = 0.1, 1e-4
+    sdf = SparseSDF(voxel=voxel, band=2.0, tolerance=tolerance).fit(samples, normals)
+    top = samples[:, 2] > 0.97
+    drifted = samples.copy()
+    drifted[top] += 0.9 * tolerance * normals[top]  # the same, to the tolerance
+    sdf.update(drifted, normals)
+    assert sdf.n_changed_ == 0
+    sdf.update(drifted[~top], normals[~top])  # then gone
+    fresh = SparseSDF(voxel=voxel, band=2.0, tolerance=tolerance).fit(drifted[~top],
+                                                                     normals[~top])
+    assert_same_grid(sdf, fresh, voxel)
 
 
 def test_the_same_samples_give_back_the_same_mesh_at_once():

@@ -66,20 +66,17 @@ def _extreme3(values: np.ndarray, extreme) -> np.ndarray:
     for axis in range(values.ndim):
         if values.shape[axis] < 2:
             continue
-        head = [slice(None)] * values.ndim
-        tail = [slice(None)] * values.ndim
-        head[axis], tail[axis] = slice(0, -1), slice(1, None)
-        pairs = extreme(values[tuple(head)], values[tuple(tail)])  # node i and i + 1
+
+        def along(part, axis=axis, ndim=values.ndim):
+            index = [slice(None)] * ndim
+            index[axis] = part
+            return tuple(index)
+        pairs = extreme(values[along(slice(0, -1))], values[along(slice(1, None))])  # i, i + 1
         result = np.empty_like(values)
-        first, last = list(head), list(head)
-        first[axis], last[axis] = slice(0, 1), slice(-1, None)
-        result[tuple(first)] = pairs[tuple(first)]
-        last_out = [slice(None)] * values.ndim
-        last_out[axis] = slice(-1, None)
-        result[tuple(last_out)] = pairs[tuple(last)]
-        inner = [slice(None)] * values.ndim
-        inner[axis] = slice(1, -1)
-        extreme(pairs[tuple(head)], pairs[tuple(tail)], out=result[tuple(inner)])
+        result[along(slice(0, 1))] = pairs[along(slice(0, 1))]
+        result[along(slice(-1, None))] = pairs[along(slice(-1, None))]
+        extreme(pairs[along(slice(0, -1))], pairs[along(slice(1, None))],
+                out=result[along(slice(1, -1))])
         values = result
     return values
 

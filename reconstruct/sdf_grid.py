@@ -212,9 +212,12 @@ class SparseSDF:
         """(m',) bool new samples not among the old, (m,) bool old samples not among the new
         (`changed_rows`)."""
         self._old = self.samples_
-        tolerance = 1e-9 * self.voxel if self.tolerance is None else self.tolerance
         return changed_rows(self.samples_, self.normals_, self.tree_, samples, normals,
-                            tolerance, self.voxel)
+                            self._tolerance, self.voxel)
+
+    @property
+    def _tolerance(self) -> float:
+        return 1e-9 * self.voxel if self.tolerance is None else self.tolerance
 
     def _candidates(self, centres: np.ndarray, radius: float) -> np.ndarray:
         """Flat indices of the nodes within ``radius`` voxels (per axis) of ``centres``."""
@@ -236,7 +239,7 @@ class SparseSDF:
         """The nodes of ``flat`` within ``bound`` of a point of ``tree``, or within their own
         ``within`` (q,) ≤ ``bound``."""
         # a sample that moved within the tolerance kept its nodes' distances: off by as much
-        slack = 2 * (1e-9 * self.voxel if self.tolerance is None else self.tolerance)
+        slack = 2 * self._tolerance
         gap = tree.query(self._xyz(flat), distance_upper_bound=bound * (1 + 1e-9) + slack,
                          workers=QUERY_THREADS)[0]
         return flat[gap <= (bound if within is None else within) + slack]

@@ -7,8 +7,9 @@ with the paper's pipeline (embedding → adaptive MLP → multi-depth boundary �
 ONNX map; the first chart's searched layer widths and K, or those of a one-chart fit of the
 same cloud, are reused by the others, which then train without a search, in ``n_jobs``
 processes: `reconstruct.chart_fit`), and accepts a chart only when it is faithful: its mesh
-leaves at most `UNEXPLAINED_LIMIT` of its points unexplained and does not fold over
-(`fold_share`); otherwise the chart is split and fitted again (at most ``max_splits`` times
+leaves at most `UNEXPLAINED_LIMIT` of its points unexplained, does not fold over
+(`fold_share`) and does not run between two layers of its points (`residual_kurtosis`);
+otherwise the chart is split and fitted again (at most ``max_splits`` times
 along one line of descent).
 The accepted charts' meshes, trimmed to a partition of the cloud, oriented alike (along their
 overlaps, and by which side of each is outside: `reconstruct.chart_sides`) and joined by
@@ -54,7 +55,14 @@ from .chart_parts import ChartPart, chart_part, unchanged
 from .chart_sides import ChartSides, UnchartedTracker, uncharted_points
 from .charts import ChartDecomposition
 from .closed_grid import ClosedSDF
-from .errors import FitError, InvalidInputError, NotFittedError, ReconstructionWarning
+from .errors import (
+    DegenerateCloudError,
+    FitError,
+    InvalidInputError,
+    NotFittedError,
+    ReconstructionError,
+    ReconstructionWarning,
+)
 from .io import one_line, read_state, write_state
 from .join import (
     ExteriorProbe,
@@ -442,7 +450,8 @@ class AtlasReconstructor(BaseEstimator):
                                  reach=self.reach * self.decomposition_.spacing_)
             for i, chart, k, normals in zip(todo, charts, kept, vertex_normals(meshes, kept),
                                             strict=True):
-                parts[i] = chart_part(chart.mesh_.vertices, chart.vertices_2d_, chart.outline_,
+                lattice = None if chart.grid_spacing is None else chart.outline_lattice()
+                parts[i] = chart_part(chart.mesh_.vertices, chart.vertices_2d_, lattice,
                                       chart.grid_spacing, k, normals)
         self._parts = parts
         return parts
@@ -525,6 +534,13 @@ class AtlasReconstructor(BaseEstimator):
         if said:  # one line for the atlas, not one per chart
             warnings.warn(f"{len(said)} of {len(self.charts_)} charts: {said[0].message}",
                           ReconstructionWarning, stacklevel=2)
+        refused = [exc for exc in fresh if isinstance(exc, Exception)]
+        if len(refused) == len(self.charts_):
+            raise refused[0]  # no chart took them: the atlas is as it was
+        if refused:
+            warnings.warn(f"{len(refused)} of {len(self.charts_)} charts keep their mesh: "
+                          f"{one_line(refused[0])}", ReconstructionWarning, stacklevel=2)
+            fresh = [exc is True for exc in fresh]
         self.timings_["remesh charts"] = time.perf_counter() - started
         if (any(fresh) or self.__dict__.get("_joined_up") != self._up_key()
                 or not self._mesh_stands()):
@@ -556,20 +572,27 @@ class AtlasReconstructor(BaseEstimator):
         self._joined_up = self._up_key()
         return True
 
-    def _remesh_chart(self, index: int, part: ChartPart | None, params: dict) -> bool:
+    def _remesh_chart(self, index: int, part: ChartPart | None,
+                      params: dict) -> bool | ReconstructionError:
         """Re-mesh chart ``index`` with ``params`` unless its ``part`` of the join cannot
-        change (`chart_parts.unchanged`); returns whether it was meshed."""
+        change (`chart_parts.unchanged`); returns whether it was meshed, or the error of a
+        chart whose boundary cannot take them (a small chart's spline that a large λ collapses,
+        too few points at a depth: the chart keeps its parameters and mesh)."""
         chart = self.charts_[index]
-        if part is None:  # not joined since loaded or fitted: nothing kept to compare with
-            return chart.remesh_unless(None, **params)
-        labels, tree = self._owners
-        reach = self.reach * self.decomposition_.spacing_
+        test = None
+        if part is not None:  # else not joined since loaded or fitted: nothing to compare with
+            labels, tree = self._owners
+            reach = self.reach * self.decomposition_.spacing_
 
-        def mine(positions):
-            return owned([positions], labels, tree, reach, charts=[index])[0]
-        return chart.remesh_unless(
-            lambda outline, spacing: unchanged(part, outline, spacing, chart.surface_map_, mine),
-            **params)
+            def mine(positions):
+                return owned([positions], labels, tree, reach, charts=[index])[0]
+
+            def test(outline, spacing, grid):
+                return unchanged(part, outline, spacing, chart.surface_map_, mine, grid)
+        try:
+            return chart.remesh_unless(test, **params)
+        except (FitError, DegenerateCloudError) as exc:
+            return exc
 
     def _up_key(self):
         """What of ``up`` an open join's mesh depends on (`_face_seen_side`)."""

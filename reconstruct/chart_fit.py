@@ -4,8 +4,9 @@ decomposition's, unfaithful ones split (`fit_every_chart`); charts embedded ahea
 workers (`ChartsAhead`).
 
 A chart is a `SurfaceReconstructor` fitted without the atlas fallback, then judged faithful or
-not (`faithfulness`: unexplained points, fold-over), pinned to its grid lattice and sampled at
-every saved boundary depth, so the atlas re-meshes it incrementally and to any of those depths.
+not (`faithfulness`: unexplained points, fold-over, points in two layers), pinned to its grid
+lattice and sampled at every saved boundary depth, so the atlas re-meshes it incrementally and
+to any of those depths.
 """
 
 from __future__ import annotations
@@ -25,7 +26,13 @@ from joblib import effective_n_jobs
 from joblib.externals.loky import ProcessPoolExecutor
 
 from .errors import ReconstructionWarning
-from .faithfulness import FOLD_LIMIT, UNEXPLAINED_LIMIT, fold_share
+from .faithfulness import (
+    FOLD_LIMIT,
+    TWO_LAYER_KURTOSIS,
+    UNEXPLAINED_LIMIT,
+    fold_share,
+    residual_kurtosis,
+)
 from .io import one_line
 from .meshing import default_spacing
 from .threads import single_threaded
@@ -103,6 +110,10 @@ def fit_chart(points, lam: float, depth: int, random_state, n_neighbors: int | N
     folds = fold_share(reconstructor.mesh_)
     if folds > FOLD_LIMIT:
         faults.append(f"mesh folds over ({100 * folds:.1f} % of its edges)")
+    kurtosis = residual_kurtosis(reconstructor.mesh_, points)
+    if kurtosis < TWO_LAYER_KURTOSIS:
+        faults.append(f"its points lie in two layers, one each side of its mesh (residual "
+                      f"kurtosis {kurtosis:.2f}): two sheets meshed as one")
     reconstructor.fold_share_ = folds
     ready_to_remesh(reconstructor)
     return reconstructor, ("; ".join(faults) or None)

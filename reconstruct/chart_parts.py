@@ -63,10 +63,11 @@ def deep_nodes(used: np.ndarray) -> np.ndarray:
     return deep
 
 
-def chart_part(vertices, vertices_2d, outline, spacing, kept, normals) -> ChartPart:
-    """The part of a chart meshed with ``outline`` (p, 2) on the lattice of ``spacing`` (None:
-    not on a lattice): ``vertices`` (v, 3) and ``vertices_2d`` (v, 2) of its mesh, ``kept``
-    (k,) the vertices in its own part, ``normals`` (k, 3) theirs."""
+def chart_part(vertices, vertices_2d, lattice, spacing, kept, normals) -> ChartPart:
+    """The part of a chart meshed on the lattice of ``spacing`` (None: not on a lattice) inside
+    an outline whose `meshing.lattice_nodes` are ``lattice`` (first, used): ``vertices``
+    (v, 3) and ``vertices_2d`` (v, 2) of its mesh, ``kept`` (k,) the vertices in its own part,
+    ``normals`` (k, 3) theirs."""
     part = ChartPart(vertices[kept], normals, kept)
     if spacing is None or len(kept) == 0:
         return part
@@ -75,7 +76,7 @@ def chart_part(vertices, vertices_2d, outline, spacing, kept, normals) -> ChartP
     if not np.allclose(scaled, nodes, rtol=0, atol=ON_LATTICE):
         return part
     nodes = nodes.astype(np.int64)
-    first, used = lattice_nodes(outline, spacing)
+    first, used = lattice
     deep = deep_nodes(used)
     if _inside(deep, nodes - first).all():
         part.nodes, part.first, part.deep = nodes, first, deep
@@ -91,13 +92,15 @@ def _inside(mask: np.ndarray, ij: np.ndarray) -> np.ndarray:
     return out
 
 
-def unchanged(part: ChartPart | None, outline, spacing: float, surface_map, mine) -> bool:
+def unchanged(part: ChartPart | None, outline, spacing: float, surface_map, mine,
+              grid: tuple | None = None) -> bool:
     """Whether meshing the chart with ``outline`` (p, 2) on the lattice of ``spacing`` gives
     ``part`` again. surface_map : the chart's map, (m, 2) → (m, 3); mine : (m, 3) → (m,) bool,
-    which positions lie in the chart's own part of the cloud."""
+    which positions lie in the chart's own part of the cloud; grid : the outline's
+    `meshing.lattice_grid`, when the caller has it."""
     if part is None or part.nodes is None:
         return False
-    first, used = lattice_nodes(outline, spacing)
+    first, used = lattice_nodes(outline, spacing, grid)
     deep = deep_nodes(used)
     if not _inside(deep, part.nodes - first).all():
         return False

@@ -37,7 +37,8 @@ def sample_ring(polygon: np.ndarray, spacing: float) -> np.ndarray:
 
 
 def mesh_inside(
-    polygon: np.ndarray, boundary_points: np.ndarray, spacing: float, lattice: bool = False
+    polygon: np.ndarray, boundary_points: np.ndarray, spacing: float, lattice: bool = False,
+    grid: tuple | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Triangulate the region inside ``polygon``.
 
@@ -46,6 +47,7 @@ def mesh_inside(
     spacing : grid spacing, in the units of the polygon.
     lattice : put the grid on the lattice ``spacing · ℤ²`` (else it starts at the polygon's
         lower corner): a new outline then keeps the interior nodes where they were.
+    grid : `lattice_grid` of ``polygon`` and ``spacing`` when its caller has it (``lattice``).
     Returns vertices (v, 2) float64 and faces (f, 3) int64, counter-clockwise.
     """
     if not np.isfinite(spacing) or spacing <= 0:
@@ -56,7 +58,7 @@ def mesh_inside(
     region = shapely.Polygon(polygon)
     shapely.prepare(region)
     # index: (ny+1, nx+1) vertex id of each grid node, -1 when unused; full: (ny, nx) cells.
-    origin, index, grid_xy, full = _grid_nodes(polygon, spacing, lattice)
+    origin, index, grid_xy, full = grid or _grid_nodes(polygon, spacing, lattice)
 
     n_boundary = len(boundary_points)
     vertices = np.vstack([boundary_points, grid_xy])
@@ -85,14 +87,22 @@ def mesh_inside(
     return _drop_unused(vertices, faces)
 
 
-def lattice_nodes(polygon: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
-    """The lattice nodes `mesh_inside` (``lattice=True``) uses inside ``polygon`` (p, 2):
-    ``first`` (2,) int64, the whole-number (x, y) of the corner node, and ``used``
-    (rows, cols) bool, node (row j, column i) at ``(first + (i, j)) · spacing``."""
+def lattice_grid(polygon: np.ndarray, spacing: float) -> tuple:
+    """The grid `mesh_inside` (``lattice=True``) lays inside ``polygon`` (p, 2), for it and
+    `lattice_nodes` to share (a re-mesh asks both, 1 ms each)."""
     polygon = np.asarray(polygon, dtype=np.float64)
     if not np.array_equal(polygon[0], polygon[-1]):
         polygon = np.vstack([polygon, polygon[:1]])
-    lo, index, _, _ = _grid_nodes(polygon, spacing, lattice=True)
+    return _grid_nodes(polygon, spacing, lattice=True)
+
+
+def lattice_nodes(polygon: np.ndarray, spacing: float,
+                  grid: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The lattice nodes `mesh_inside` (``lattice=True``) uses inside ``polygon`` (p, 2):
+    ``first`` (2,) int64, the whole-number (x, y) of the corner node, and ``used``
+    (rows, cols) bool, node (row j, column i) at ``(first + (i, j)) · spacing``. ``grid``:
+    its `lattice_grid` when the caller has it."""
+    lo, index, _, _ = grid or lattice_grid(polygon, spacing)
     return np.rint(lo / spacing).astype(np.int64), index >= 0
 
 

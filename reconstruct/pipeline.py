@@ -43,7 +43,7 @@ from .faithfulness import (
 )
 from .io import one_line, read_state, write_state
 from .join import check_up, faces_seen_side
-from .meshing import default_spacing, mesh_inside, sample_ring
+from .meshing import default_spacing, lattice_grid, lattice_nodes, mesh_inside, sample_ring
 from .mlp import AdaptiveMLP
 from .outline import border_inset, border_spacing, extend_outline
 from .pipeline_state import STATE_FORMAT, reconstruction_from_state, reconstruction_state
@@ -451,11 +451,11 @@ class SurfaceReconstructor(BaseEstimator):
         return self.mesh_
 
     def remesh_unless(self, unchanged, **params) -> bool:
-        """`remesh` with ``params`` unless ``unchanged(outline, spacing)``, given the new
-        outline (p, 2) and grid spacing, says that what its caller uses of the mesh would come
-        out as it is (an atlas's part of its chart: `reconstruct.chart_parts`). Then only the
-        parameters, ``spline_`` and ``outline_`` are taken and ``mesh_`` is dropped. Returns
-        whether it re-meshed."""
+        """`remesh` with ``params`` unless ``unchanged(outline, spacing, grid)``, given the
+        new outline (p, 2), grid spacing and `meshing.lattice_grid` (None off a lattice), says
+        that what its caller uses of the mesh would come out as it is (an atlas's part of its
+        chart: `reconstruct.chart_parts`). Then only the parameters, ``spline_`` and
+        ``outline_`` are taken and ``mesh_`` is dropped. Returns whether it re-meshed."""
         _check_known(params)
         if not hasattr(self, "surface_map_"):
             raise NotFittedError("fit() the reconstructor (or load() a saved one) first")
@@ -464,15 +464,19 @@ class SurfaceReconstructor(BaseEstimator):
         vars(self).update(given)  # (set_params's introspection: 0.3 ms of a chart's 8)
         try:
             self._check_mesh_params()
-        except InvalidInputError:
-            vars(self).update(previous)  # a rejected value leaves the model as it was
+            return self._remeshed_unless(unchanged)
+        except Exception:  # a rejected value, or one its boundary cannot take (a spline that
+            vars(self).update(previous)  # collapses), leaves the model as it was
             raise
+
+    def _remeshed_unless(self, unchanged) -> bool:
         started = time.perf_counter()
         interpolants, fit_input = self._boundary_points()
         spline = BoundarySpline(lam=self.lam, variance=self.variance).fit(fit_input)
         outline = self._extended(spline.polygon_)
         spacing = self.grid_spacing or default_spacing(outline, len(self.embedding_))
-        if unchanged is not None and unchanged(outline, spacing):
+        grid = None if self.grid_spacing is None else lattice_grid(outline, spacing)
+        if unchanged is not None and unchanged(outline, spacing, grid):
             self.boundary_points_, self.spline_, self.outline_ = interpolants, spline, outline
             for name in ("mesh_", "vertices_2d_"):
                 self.__dict__.pop(name, None)
@@ -480,12 +484,14 @@ class SurfaceReconstructor(BaseEstimator):
         bounded = time.perf_counter()
         boundary_vertices = sample_ring(outline, spacing)
         vertices_2d, faces = mesh_inside(outline, boundary_vertices, spacing,
-                                         lattice=self.grid_spacing is not None)
+                                         lattice=grid is not None, grid=grid)
         vertices_3d = self.surface_map_(vertices_2d)
         self.boundary_points_ = interpolants
         self.spline_ = spline
         self.outline_ = outline
         self.vertices_2d_ = vertices_2d
+        if grid is not None:
+            self._outline_lattice = (outline, lattice_nodes(outline, spacing, grid))
         if self.up is not None and not self._faces_seen_side(vertices_3d, faces):
             faces = np.ascontiguousarray(faces[:, ::-1])
         self.mesh_ = trimesh.Trimesh(vertices_3d, faces, process=False)
@@ -501,6 +507,15 @@ class SurfaceReconstructor(BaseEstimator):
             1000 * (time.perf_counter() - started),
         )
         return True
+
+    def outline_lattice(self) -> tuple[np.ndarray, np.ndarray]:
+        """`meshing.lattice_nodes` (first, used) of ``outline_`` on the lattice of
+        ``grid_spacing`` (kept from the re-mesh that laid them)."""
+        kept = self.__dict__.get("_outline_lattice")
+        if kept is None or kept[0] is not self.outline_:
+            kept = self._outline_lattice = (self.outline_,
+                                            lattice_nodes(self.outline_, self.grid_spacing))
+        return kept[1]
 
     def _faces_seen_side(self, vertices, faces) -> bool:
         """Whether the map's faces (f, 3) over ``vertices`` (v, 3) face the side the cloud was

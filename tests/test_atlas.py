@@ -89,6 +89,31 @@ def test_remesh_runs_through_the_stored_maps(sphere_atlas):
     assert atlas.watertight_ and len(atlas.mesh_.faces) > 0.5 * before
 
 
+
+def test_a_lam_no_chart_can_take_leaves_the_atlas_as_it_was(sphere_atlas):
+    _, atlas = sphere_atlas
+    mesh, lams = atlas.mesh_, [chart.lam for chart in atlas.charts_]
+    with pytest.raises(FitError, match="is too large, use a smaller --lam"):
+        atlas.remesh(lam=1e6)
+    assert atlas.mesh_ is mesh and [chart.lam for chart in atlas.charts_] == lams
+
+
+def test_a_chart_that_cannot_take_a_lam_keeps_its_mesh_and_says_so(sphere_atlas, monkeypatch):
+    _, atlas = sphere_atlas
+    small = atlas.charts_[0]
+    lam = small.lam
+
+    def collapses(unchanged):
+        raise FitError(f"boundary spline collapsed to a curve without area: lam={small.lam} "
+                       "is too large, use a smaller --lam")
+    monkeypatch.setattr(small, "_remeshed_unless", collapses)
+    with pytest.warns(ReconstructionWarning, match=r"1 of \d+ charts keep their mesh: "
+                                                   r"boundary spline collapsed"):
+        atlas.remesh(lam=lam + 0.5)
+    assert small.lam == lam
+    assert all(chart.lam == lam + 0.5 for chart in atlas.charts_[1:])
+    assert atlas.watertight_
+
 def test_an_open_patch_keeps_its_border_and_its_hole():
     points = holed_patch()
     atlas = AtlasReconstructor(chart_size=1500).fit(points)

@@ -11,7 +11,7 @@ import trimesh
 from reconstruct.atlas import AtlasReconstructor
 from reconstruct.chart_parts import chart_part, deep_nodes, unchanged
 from reconstruct.errors import ReconstructionWarning
-from reconstruct.meshing import mesh_inside, sample_ring
+from reconstruct.meshing import lattice_grid, lattice_nodes, mesh_inside, sample_ring
 
 SPACING = 0.1
 
@@ -36,8 +36,8 @@ def flat_part(outline, radius):
                                      lattice=True)
     mesh = trimesh.Trimesh(flat(vertices_2d), faces, process=False)
     kept = np.flatnonzero(within(radius)(mesh.vertices))
-    return chart_part(mesh.vertices, vertices_2d, outline, SPACING, kept,
-                      mesh.vertex_normals[kept])
+    return chart_part(mesh.vertices, vertices_2d, lattice_nodes(outline, SPACING), SPACING,
+                      kept, mesh.vertex_normals[kept])
 
 
 def test_deep_nodes_are_those_whose_neighbours_are_all_used():
@@ -149,3 +149,18 @@ def test_a_state_whose_parts_do_not_fit_its_charts_is_refused(torus_atlas, tmp_p
     path = write_state(tmp_path / "bad.npz", meta, arrays)
     with pytest.raises(InvalidInputError, match="damaged atlas state.*parts"):
         AtlasReconstructor.load(path)
+
+
+def test_a_shared_lattice_grid_meshes_and_tests_as_one_laid_afresh():
+    outline = square(0.5)
+    grid = lattice_grid(outline, SPACING)
+    ring = sample_ring(outline, SPACING)
+    for got, fresh in zip(mesh_inside(outline, ring, SPACING, lattice=True, grid=grid),
+                          mesh_inside(outline, ring, SPACING, lattice=True), strict=True):
+        np.testing.assert_array_equal(got, fresh)
+    for got, fresh in zip(lattice_nodes(outline, SPACING, grid), lattice_nodes(outline, SPACING),
+                          strict=True):
+        np.testing.assert_array_equal(got, fresh)
+    part = flat_part(square(1.0), 0.3)
+    assert unchanged(part, outline, SPACING, flat, within(0.3), grid) == unchanged(
+        part, outline, SPACING, flat, within(0.3))

@@ -8,9 +8,11 @@ import trimesh
 
 from reconstruct.errors import ReconstructionWarning
 from reconstruct.faithfulness import (
+    TWO_LAYER_KURTOSIS,
     bridged_share,
     local_noise,
     neighbour_preservation,
+    residual_kurtosis,
     unexplained_fraction,
 )
 from reconstruct.pipeline import SurfaceReconstructor
@@ -106,3 +108,15 @@ def test_a_cloud_with_a_hole_goes_through_the_atlas():
     # seen on the searched net's mesh: its layers fit the charts, no final fits of one chart
     assert model.atlas_.hidden_layers == model.atlas_.charts_[0].hidden_layers_
     assert bridged_share(model.mesh_, points) < 0.001
+
+
+def test_points_in_two_layers_about_a_mesh_are_told_from_noise():
+    # Two sheets 4σ apart meshed as one through their middle: every point within the noise
+    # measure's reach (none unexplained), but in two layers, one each side of the mesh.
+    square = square_mesh()
+    mesh = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(square.vertices, square.faces, 0.05))
+    one = flat_square(3000, sigma=0.01, seed=1)
+    two = one + [0, 0, 0.02] * np.where(np.arange(3000) % 2, 1, -1)[:, None]
+    assert residual_kurtosis(mesh, one) > 2.6
+    assert residual_kurtosis(mesh, two) < TWO_LAYER_KURTOSIS
+    assert unexplained_fraction(mesh, two) == 0.0  # what the other measures cannot see

@@ -5,7 +5,7 @@ import pytest
 import trimesh
 
 from reconstruct.boundary import MultiDepthBoundary
-from reconstruct.errors import DegenerateCloudError, InvalidInputError, NotFittedError
+from reconstruct.errors import DegenerateCloudError, FitError, InvalidInputError, NotFittedError
 from reconstruct.pipeline import SurfaceReconstructor
 
 FAST = {"max_layers": 1, "max_neurons": 8}
@@ -143,6 +143,13 @@ def test_remesh_is_consistent_and_cached(plane_model, monkeypatch):
     plane_model.remesh(depth=3)
     assert sampled == [1]
 
+
+
+def test_a_lam_the_boundary_cannot_take_leaves_the_model_as_it_was(plane_model):
+    mesh, lam = plane_model.mesh_, plane_model.lam
+    with pytest.raises(FitError, match="lam=1000000.0 is too large, use a smaller --lam"):
+        plane_model.remesh(lam=1e6)
+    assert plane_model.lam == lam and plane_model.mesh_ is mesh
 
 def test_save_load_remesh_round_trip(plane_model, tmp_path):
     path = plane_model.save(tmp_path / "state.npz")

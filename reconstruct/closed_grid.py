@@ -374,7 +374,7 @@ class ClosedSDF:
             at_moved = np.zeros(tuple(high - low), bool)
             inside = np.all((cells >= low) & (cells < high), axis=1)
             at_moved[tuple((cells[inside] - low).T)] = True
-            marked = squared_distance(at_moved, ball) <= int(np.floor(ball * ball))
+            marked = ~farther_than(at_moved, ball)
             eighth = self._eighth[box]
             near = ~self._free[box] & (eighth > 0)  # near before and after
             flat = flat_of(box, near & (marked | (eighth > _LOCAL * self.voxel)), self.shape_)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.stats import kurtosis
 
 from .metrics import distance_to_surface
 from .neighbors import plane_fits
@@ -51,6 +52,11 @@ _FOLD_ANGLE = np.radians(120)
 _K = 16
 _K_DENSE = 256
 _SAMPLES = 4000
+
+
+def _evenly(points: np.ndarray) -> np.ndarray:
+    """At most `_SAMPLES` of ``points`` (n, ...), evenly taken."""
+    return points[:: -(-len(points) // _SAMPLES)]
 
 
 def local_noise(points, k: int = _K, at=None) -> tuple[np.ndarray, np.ndarray]:
@@ -88,15 +94,13 @@ def residual_kurtosis(mesh, points) -> float:
     """Kurtosis (3 for a normal distribution) of the signed distances of ``points`` (n, 3)
     from ``mesh`` along the normal at its nearest vertex, on at most 4,000 evenly taken points:
     under `TWO_LAYER_KURTOSIS` the points lie in two layers, one each side of the mesh."""
-    points = np.asarray(points, dtype=np.float64)[:: -(-len(points) // _SAMPLES)]
+    points = _evenly(np.asarray(points, dtype=np.float64))
     if len(points) < 4 or len(mesh.vertices) == 0:
         return 3.0
     nearest = cKDTree(mesh.vertices).query(points)[1]
     signed = np.einsum("ij,ij->i", points - mesh.vertices[nearest],
                        mesh.vertex_normals[nearest])
-    signed -= signed.mean()
-    variance = float(np.mean(signed**2))
-    return float(np.mean(signed**4) / variance**2) if variance > 0 else 3.0
+    return float(kurtosis(signed, fisher=False)) if np.ptp(signed) > 0 else 3.0
 
 
 def explained_distance(points, factor: float = NOISE_FACTOR, k: int | None = None) -> float:
@@ -105,7 +109,7 @@ def explained_distance(points, factor: float = NOISE_FACTOR, k: int | None = Non
     neighbours, default `noise_neighbours`, around at most 4,000 evenly taken points)."""
     points = np.asarray(points, dtype=np.float64)
     k = noise_neighbours(len(points)) if k is None else k
-    noise, spacing = local_noise(points, k, at=points[:: -(-len(points) // _SAMPLES)])
+    noise, spacing = local_noise(points, k, at=_evenly(points))
     return float(factor * np.median(noise) + np.median(spacing))
 
 
@@ -124,7 +128,7 @@ def unexplained_fraction(mesh, points, factor: float = NOISE_FACTOR,
         return 1.0 if len(points) else 0.0
     if threshold is None:
         threshold = explained_distance(points, factor, k)
-    points = points[:: -(-len(points) // _SAMPLES)]  # evenly, at most _SAMPLES
+    points = _evenly(points)
     to_vertex = cKDTree(mesh.vertices).query(points)[0]
     edges = mesh.vertices[mesh.edges_unique]
     longest = float(np.linalg.norm(edges[:, 0] - edges[:, 1], axis=1).max())
@@ -144,7 +148,7 @@ def bridged_share(mesh, points, spacings: float = BRIDGE_SPACINGS) -> float:
     if len(mesh.faces) == 0 or len(points) < 9:
         return 0.0
     tree = cKDTree(points)
-    near = tree.query(points[:: -(-len(points) // _SAMPLES)], k=9)[0][:, 1:]
+    near = tree.query(_evenly(points), k=9)[0][:, 1:]
     spacing = float(np.median(near.mean(axis=1)))
     far = tree.query(mesh.triangles_center)[0] > spacings * spacing
     area = mesh.area_faces
@@ -160,7 +164,7 @@ def neighbour_preservation(points, embedding, k: int = 10) -> float:
     if len(points) != len(embedding):
         raise ValueError(f"{len(points)} points but {len(embedding)} embedded points")
     k = max(1, min(int(k), len(points) - 1))
-    sample = np.arange(0, len(points), -(-len(points) // _SAMPLES))
+    sample = _evenly(np.arange(len(points)))
     near_3d = cKDTree(points).query(points[sample], k=k + 1)[1][:, 1:]
     near_2d = cKDTree(embedding).query(embedding[sample], k=k + 1)[1][:, 1:]
     shared = (near_3d[:, :, None] == near_2d[:, None, :]).any(axis=2)

@@ -66,6 +66,7 @@ from .errors import (
 from .io import one_line, read_state, write_state
 from .join import (
     ExteriorProbe,
+    border_vertices,
     chart_samples,
     check_up,
     faces_seen_side,
@@ -473,9 +474,14 @@ class AtlasReconstructor(BaseEstimator):
             self._chart_parts([i in skipped for i in range(len(parts))])
         if todo:
             meshes = [self.charts_[i].mesh_ for i in todo]
-            filled = stretched_samples(meshes, [parts[i].kept for i in todo],
-                                       [parts[i].normals for i in todo], STRETCHED)
+            kept = [parts[i].kept for i in todo]
             labels, tree = self._owners
+            border = [border_vertices(mesh, k) for mesh, k in zip(meshes, kept, strict=True)]
+            theirs = owned([mesh.vertices[b] for mesh, b in zip(meshes, border, strict=True)],
+                           labels, tree, reach, charts=todo, others=True)
+            filled = stretched_samples(meshes, kept, [parts[i].normals for i in todo],
+                                       STRETCHED, [b[t] for b, t in zip(border, theirs,
+                                                                        strict=True)])
             mine = owned([extra for extra, _ in filled], labels, tree, reach, charts=todo)
             for i, (extra, extra_normals), own in zip(todo, filled, mine, strict=True):
                 parts[i].extra, parts[i].extra_normals = extra[own], extra_normals[own]

@@ -78,11 +78,12 @@ def chart_samples(meshes, labels, points, reach: float = np.inf, tree: cKDTree |
 
 
 def owned(positions, labels, tree: cKDTree, reach: float = np.inf,
-          charts=None) -> list[np.ndarray]:
+          charts=None, others: bool = False) -> list[np.ndarray]:
     """Which of each chart's ``positions`` (c arrays (v_i, 3)) lie in its own part of the cloud:
     their nearest input point is the chart's (``labels`` (n,), −1: none; ``charts`` (c,) the
     label of each array's chart, default 0, 1, ...; ``tree`` a cKDTree of the points with a
-    label) and within ``reach``. Returns c masks (v_i,)."""
+    label) and within ``reach``; with ``others``, in another chart's part instead. Returns c
+    masks (v_i,)."""
     sizes = [len(p) for p in positions]
     # threads for the join's queries; a chart's few hundred nodes (`chart_parts.unchanged`)
     # took twice as long with them as without (starting them, 0.4 ms)
@@ -90,8 +91,19 @@ def owned(positions, labels, tree: cKDTree, reach: float = np.inf,
                                    workers=QUERY_THREADS if sum(sizes) > 5000 else 1)
     chart = np.repeat(np.arange(len(positions)) if charts is None else np.asarray(charts),
                       sizes)
-    inside = (labels[labels >= 0][nearest] == chart) & (distance <= reach)
+    mine = labels[labels >= 0][nearest] == chart
+    inside = (~mine if others else mine) & (distance <= reach)
     return np.split(inside, np.cumsum(sizes)[:-1])
+
+
+def border_vertices(mesh: trimesh.Trimesh, kept: np.ndarray) -> np.ndarray:
+    """(b,) the vertices of ``mesh`` not ``kept`` (k,) that share a face with one that is."""
+    faces = np.asarray(mesh.faces)
+    is_kept = np.zeros(len(mesh.vertices), bool)
+    is_kept[kept] = True
+    near = np.zeros(len(mesh.vertices), bool)
+    near[faces[is_kept[faces].any(axis=1)].ravel()] = True
+    return np.flatnonzero(near & ~is_kept)
 
 
 def _stacked(meshes, kept):
@@ -123,55 +135,80 @@ def vertex_normals(meshes, kept) -> list[np.ndarray]:
     return [summed[k + offset] for k, offset in zip(kept, offsets, strict=False)]
 
 
-def stretched_samples(meshes, kept, normals, stretch: float) -> list:
-    """Samples on the charts' faces that their maps stretch: where a steep detail was
-    compressed in the embedding, a chart's regular 2D grid lands in 3D with edges several
-    times its others (relief 20k seed 1: 3-4.8 mm where the rest are 1-1.4), and its vertices
-    alone leave gaps that an open join trims into slits.
+def stretched_samples(meshes, kept, normals, stretch: float, across=None) -> list:
+    """Samples on the charts' faces where their vertices alone leave gaps that an open join
+    trims into slits and holes:
+    - faces that their maps stretch: where a steep detail was compressed in the embedding, a
+      chart's regular 2D grid lands in 3D with edges several times its others (relief 20k
+      seed 1: 3-4.8 mm where the rest are 1-1.4);
+    - faces across the border between two charts' parts: each chart's kept vertices stop
+      short of it by up to an edge (a washer's two charts, 5k σ 0.5 %: holes 4-5 mm across on
+      their border, capped only under 4).
 
     meshes : c chart meshes; kept : c arrays (k_i,) of the vertices the join keeps, with unit
-    ``normals`` (k_i, 3). Where an edge of a face whose corners are all kept is longer than
-    ``stretch`` times the median edge of its chart's such faces (``longest``), it gets
-    ceil(length / longest) − 1 points along it, and such a face's inside the points of a
-    barycentric lattice of ceil(longest side / longest) steps, on the face (the chart's mesh:
-    its network between the vertices strays from the surface where it stretches, figurine
-    20k: 1.3 voxels off against 0.1 at the vertices), with normals interpolated from the
-    corners'. Returns c pairs of samples (q_i, 3) and unit normals (q_i, 3)."""
+    ``normals`` (k_i, 3); across : c arrays of the vertices in another chart's part (None:
+    none). A face with every corner kept whose longest edge is over ``stretch`` times the
+    median edge of its chart's such faces (``longest``) is filled at steps of ``longest``; a
+    face with some corners kept and the others ``across``, at steps of half the median edge
+    at most (its edge between two kept corners as a full face's). Filled: its edges with a
+    kept end get ceil(length / step) − 1 points along them, its inside the points of a
+    barycentric lattice of ceil(longest side / step) steps, on the face (the chart's mesh: its
+    network between the vertices strays from the surface where it stretches, figurine 20k:
+    1.3 voxels off against 0.1 at the vertices), with normals interpolated from its kept
+    corners'. The caller keeps those in the chart's part (`owned`). Returns c pairs of samples
+    (q_i, 3) and unit normals (q_i, 3)."""
     offsets, vertices, faces, is_kept = _stacked(meshes, kept)
+    is_across = np.zeros(len(vertices), bool)
+    for where, offset in zip(across or (), offsets, strict=False):
+        is_across[np.asarray(where, np.int64) + offset] = True
     chart = np.repeat(np.arange(len(meshes)), [len(mesh.faces) for mesh in meshes])
-    full = is_kept[faces].all(axis=1)
-    faces, chart = faces[full], chart[full]
+    corners = is_kept[faces]
+    full = corners.all(axis=1)
+    bordering = corners.any(axis=1) & ~full & (corners | is_across[faces]).all(axis=1)
+    taken = full | bordering
+    faces, chart, full, corners = faces[taken], chart[taken], full[taken], corners[taken]
     a, b, c = (vertices[faces[:, k]] for k in range(3))
     squared = np.column_stack([np.einsum("ij,ij->i", d, d) for d in (a - b, b - c, c - a)])
-    counts = np.bincount(chart, minlength=len(meshes))
-    longest = np.array([stretch * np.sqrt(np.median(part)) if len(part) else np.inf
-                        for part in np.split(squared, np.cumsum(counts)[:-1])])
-    long = squared.max(axis=1) > longest[chart] ** 2
+    counts = np.bincount(chart[full], minlength=len(meshes))
+    median = np.array([np.sqrt(np.median(part)) if len(part) else np.inf
+                       for part in np.split(squared[full], np.cumsum(counts)[:-1])])[chart]
+    longest = stretch * median
+    step = np.where(full, longest, np.minimum(longest, 0.5 * median))  # (f,) of the insides
+    # (f, 3) of the edges (corners 0-1, 1-2, 2-0): one between two kept corners as a full face's
+    edge_step = np.where(corners & np.roll(corners, -1, axis=1), longest[:, None],
+                         step[:, None])
+    filled_faces = (squared > edge_step**2).any(axis=1) | (squared.max(axis=1) > (2 * step)**2)
     empty = (np.zeros((0, 3)), np.zeros((0, 3)))
     filled = [empty] * len(meshes)
-    for c in np.unique(chart[long]).tolist():
-        mine = long & (chart == c)
-        filled[c] = _fill_faces(faces[mine] - offsets[c], np.sqrt(squared[mine]),
-                                float(longest[c]), meshes[c].vertices, kept[c], normals[c])
+    for c in np.unique(chart[filled_faces]).tolist():
+        mine = filled_faces & (chart == c)
+        filled[c] = _fill_faces(faces[mine] - offsets[c], np.sqrt(squared[mine]), step[mine],
+                                edge_step[mine], meshes[c].vertices, kept[c], normals[c])
     return filled
 
 
-def _fill_faces(faces, sides, longest, vertices, kept, normals):
-    """`stretched_samples` on one chart's long ``faces`` (f, 3) with their ``sides`` (f, 3)."""
-    slot = np.full(len(vertices), -1)
-    slot[kept] = np.arange(len(kept))
-    # the long edges, once each: points at t = 1/m ... (m − 1)/m along them
+def _fill_faces(faces, sides, step, edge_step, vertices, kept, normals):
+    """`stretched_samples` on one chart's ``faces`` (f, 3), each with a ``kept`` corner, their
+    ``sides`` (f, 3) and the steps their insides (f,) and edges (f, 3) are filled at."""
+    at = np.zeros((len(vertices), 3))  # a corner not kept weighs nothing in a sample's normal
+    at[kept] = normals
+    is_kept = np.zeros(len(vertices), bool)
+    is_kept[kept] = True
+    # the edges with a kept end, once each, at the finest step of their faces: points at
+    # t = 1/m ... (m − 1)/m along them
     edges = np.sort(np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
-    edges, first = np.unique(edges, axis=0, return_index=True)
-    steps = np.ceil(sides.ravel()[first] / longest).astype(np.int64)
-    edges, steps = edges[steps >= 2], steps[steps >= 2]
+    edges, inverse = np.unique(edges, axis=0, return_inverse=True)
+    steps = np.zeros(len(edges), np.int64)
+    np.maximum.at(steps, inverse.ravel(), np.ceil(sides / edge_step).astype(np.int64).ravel())
+    wanted = (steps >= 2) & is_kept[edges].any(axis=1)
+    edges, steps = edges[wanted], steps[wanted]
     along = np.repeat(steps, steps - 1)
     t = (np.arange(len(along)) - np.repeat(np.cumsum(steps - 1) - (steps - 1), steps - 1) + 1)
     t = (t / along)[:, None]
     a, b = np.repeat(edges, steps - 1, axis=0).T
     weights, members = [np.column_stack([1 - t, t])], [np.column_stack([a, b])]
-    # and inside each long face, the lattice points off its sides
-    lattice = np.ceil(sides.max(axis=1) / longest).astype(np.int64)
+    # and inside each face, the lattice points off its sides
+    lattice = np.ceil(sides.max(axis=1) / step).astype(np.int64)
     for n in np.unique(lattice[lattice >= 3]).tolist():
         i, j = np.mgrid[1:n, 1:n].reshape(2, -1)
         inner = (n - i - j) >= 1
@@ -181,7 +218,7 @@ def _fill_faces(faces, sides, longest, vertices, kept, normals):
         members.append(np.repeat(which, len(w), axis=0))
     points = np.concatenate([np.einsum("pk,pkd->pd", w, vertices[m])
                              for w, m in zip(weights, members, strict=True)])
-    turned = np.concatenate([np.einsum("pk,pkd->pd", w, normals[slot[m]])
+    turned = np.concatenate([np.einsum("pk,pkd->pd", w, at[m])
                              for w, m in zip(weights, members, strict=True)])
     turned /= np.maximum(np.linalg.norm(turned, axis=1, keepdims=True), 1e-300)
     return points, turned

@@ -7,6 +7,7 @@ import trimesh
 from reconstruct.grid_steps import VOTERS, pocket_voters
 from reconstruct.join import (
     ExteriorProbe,
+    border_vertices,
     exterior_votes,
     faces_seen_side,
     implicit_mesh,
@@ -234,6 +235,34 @@ def test_a_stretched_chart_is_filled_on_its_faces():
     both = stretched_samples([level, mesh], [kept, kept], [normals, normals], 2.0)
     assert len(both[0][0]) == 0  # sides of 1 and diagonals of 1.4: nothing to fill
     np.testing.assert_array_equal(both[1][0], extra)  # each chart by its own median
+
+
+def test_a_face_across_the_border_between_two_parts_is_filled():
+    from scipy.spatial import Delaunay, cKDTree
+
+    u, v = np.mgrid[0:8, 0:8].reshape(2, -1).astype(float)
+    faces = Delaunay(np.c_[u, v]).simplices
+    x = u + 3 * np.clip(u - 3, 0, 2)  # the map stretches 3 < u < 5 four times
+    mesh = trimesh.Trimesh(np.c_[x, v, np.sin(u)], faces, process=False)
+    kept = np.flatnonzero(u < 4)  # the border between two parts crosses the stretched band
+    normals = np.tile([0.0, 0.0, 1.0], (len(kept), 1))
+    border = border_vertices(mesh, kept)
+    np.testing.assert_array_equal(border, np.flatnonzero(u == 4))
+    ((alone, _),) = stretched_samples([mesh], [kept], [normals], 2.0)
+    assert len(alone) == 0  # a border not shared (a hole's rim, the data's edge) stays
+    ((extra, extra_normals),) = stretched_samples([mesh], [kept], [normals], 2.0, [border])
+    # the kept vertices stop 4 short of the next node (x = 3 -> 7): the faces across are
+    # filled as far as that node, with the kept corners' normals, none beyond
+    assert len(extra) > 0
+    assert (extra[:, 0] > 3 + 1e-9).all() and (extra[:, 0] < 7 - 1e-9).all()
+    np.testing.assert_allclose(extra_normals, np.tile([0.0, 0.0, 1.0], (len(extra), 1)))
+    probe = trimesh.sample.sample_surface(mesh, 4000, seed=0)[0]
+    probe = probe[(probe[:, 0] > 3) & (probe[:, 0] < 4.5)]
+    gap = cKDTree(np.concatenate([mesh.vertices[kept], extra])).query(probe)[0].max()
+    assert gap < 1.3 < cKDTree(mesh.vertices[kept]).query(probe)[0].max()
+    level = trimesh.Trimesh(np.c_[u, v, 0 * u], faces, process=False)
+    ((flat, _),) = stretched_samples([level], [kept], [normals], 2.0, [border])
+    assert ((flat[:, 0] > 3) & (flat[:, 0] < 4)).all()  # at half an edge, not at 2 edges
 
 
 def test_an_open_join_faces_the_side_it_was_seen_from():

@@ -67,6 +67,30 @@ def no_leaked_threads():
         pytest.fail(f"test leaked threads: {', '.join(t.name for t in leaked)}")
 
 
+#: The loggers whose levels the CLI sets for its output (`capture.cli`).
+CLI_LOGGERS = ("capture", "reconstruct", "drivers", "sim")
+
+
+@pytest.fixture(autouse=True)
+def cli_output_restored():
+    """A test that runs the CLI leaves the logging and warnings as it found them: its INFO
+    level on ``reconstruct`` made a later test's caplog hold every fit's progress lines."""
+    import warnings
+
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    levels = {name: logging.getLogger(name).level for name in CLI_LOGGERS}
+    showwarning = warnings.showwarning
+    yield
+    for handler in root.handlers[:]:  # the CLI's own (pytest adds and drops its per phase)
+        if handler not in handlers and not type(handler).__module__.startswith("_pytest"):
+            root.removeHandler(handler)
+    root.setLevel(level)
+    for name, kept in levels.items():
+        logging.getLogger(name).setLevel(kept)
+    warnings.showwarning = showwarning
+
+
 @pytest.fixture
 def leaked_threads():
     """The leak check itself: ``leaked_threads(before)`` lists the threads it would fail on."""

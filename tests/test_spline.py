@@ -175,14 +175,27 @@ def test_self_crossing_spline_is_repaired_to_its_largest_loop():
     np.testing.assert_array_equal(spline.polygon_[0], spline.polygon_[-1])
 
 
+def test_interpolants_that_outline_no_one_region_are_refused():
+    # a depth deeper than the cloud is wide takes most of its points as interpolants, in an
+    # order that crosses its inside back and forth: no loop of the spline is the region
+    rng = np.random.default_rng(0)
+    radius, angle = np.sqrt(rng.uniform(size=300)), rng.uniform(0, 2 * np.pi, 300)
+    order = np.argsort(angle + 0.3 * rng.normal(size=300))  # roughly round, but every which way
+    wandering = np.c_[radius * np.cos(angle), radius * np.sin(angle)][order]
+    with pytest.raises(FitError, match="crosses itself all over.*smaller --depth"):
+        BoundarySpline(lam=1.0, variance="local").fit(wandering)
+
+
 def test_largest_loop_is_make_valids_largest_piece_from_the_spline_start():
     t = np.linspace(0.0, 2 * np.pi, 400)
     x = np.sin(t) * np.where(np.sin(t) > 0, 1.5, 1.0)
     figure = np.column_stack([x, np.sin(2 * t) / 2])  # an 8: lobes of unequal size
     figure[-1] = figure[0]
-    loop = _largest_loop(figure)
+    loop, share = _largest_loop(figure)
     pieces = shapely.get_parts(shapely.make_valid(shapely.Polygon(figure)))
     largest = max(pieces, key=lambda piece: piece.area)
+    assert share == pytest.approx(largest.area / sum(piece.area for piece in pieces), rel=1e-9)
+    assert share == pytest.approx(0.6, abs=1e-3)  # lobes of areas 1.5 : 1
     assert shapely.Polygon(loop).area == pytest.approx(largest.area, rel=1e-12)
     assert {tuple(v) for v in loop} == {tuple(v) for v in np.asarray(largest.exterior.coords)}
     np.testing.assert_array_equal(loop[0], loop[-1])

@@ -16,6 +16,11 @@ from scipy.spatial import Delaunay
 
 from .errors import FitError
 
+#: Most nodes the box of a chart's 2D grid may hold: a grid spacing far below the points' (or
+#: an outline extended far beyond them) would take the machine's memory (a washer chart at
+#: spacing 1e-6: 1.5e8 nodes, 2.25 GiB for their coordinates alone, and more after).
+MAX_GRID_NODES = 20_000_000
+
 
 def default_spacing(polygon: np.ndarray, n_points: int) -> float:
     """Grid spacing that gives about as many mesh vertices as the cloud has points.
@@ -116,8 +121,12 @@ def _grid_nodes(polygon, spacing, lattice=False):
         ij = np.column_stack([i, j]).astype(np.float64)
         return (first + ij) * spacing if lattice else lo + spacing * ij
     hi = polygon.max(axis=0)
-    nx = int(np.ceil((hi[0] - lo[0]) / spacing)) + 1
-    ny = int(np.ceil((hi[1] - lo[1]) / spacing)) + 1
+    columns, rows = np.ceil((hi - lo) / spacing) + 2  # floats: a huge grid is no overflow
+    if columns * rows > MAX_GRID_NODES:
+        raise FitError(f"a grid spacing of {spacing:.3g} lays {columns * rows:.2g} nodes in the "
+                       f"boundary's box (at most {MAX_GRID_NODES:.0e}): use a larger --spacing "
+                       "or a smaller --extend")
+    nx, ny = int(columns) - 1, int(rows) - 1
     inside = rasterize(polygon, lo, spacing, (ny + 1, nx + 1))
     # Nodes closer than half a spacing to the boundary would make slivers with the boundary points;
     # a node that close to a point of the dense ring is a corner of the point's cell (a cKDTree

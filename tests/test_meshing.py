@@ -3,7 +3,7 @@ import pytest
 import shapely
 
 from reconstruct.errors import FitError
-from reconstruct.meshing import default_spacing, mesh_inside
+from reconstruct.meshing import MAX_GRID_NODES, default_spacing, lattice_grid, mesh_inside
 
 
 def _loop(radius_fn, n=1200):
@@ -76,6 +76,16 @@ def test_bad_spacing_is_an_error():
     polygon = _loop(SHAPES["circle"])
     with pytest.raises(FitError, match="spacing"):
         mesh_inside(polygon, polygon[:-1:10], spacing=0.0)
+
+
+@pytest.mark.parametrize("lattice", [False, True])
+def test_a_grid_too_fine_for_memory_is_refused_before_it_is_laid(lattice):
+    polygon = _loop(SHAPES["circle"])  # 1e-9: 1e19 nodes, an overflow in int64 arithmetic
+    assert (np.ptp(polygon, axis=0) / 1e-9).prod() > 1e4 * MAX_GRID_NODES
+    with pytest.raises(FitError, match="grid spacing of 1e-09 lays .* nodes"):
+        mesh_inside(polygon, polygon[:-1:10], spacing=1e-9, lattice=lattice)
+    with pytest.raises(FitError, match="larger --spacing"):
+        lattice_grid(polygon, 1e-9)
 
 
 def test_on_the_lattice_a_new_outline_keeps_the_interior_nodes():

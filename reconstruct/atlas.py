@@ -22,7 +22,7 @@ or a hole wider than a few spacings.
 
 `remesh(lam=..., depth=...)` re-meshes every chart through its stored ONNX map (no retraining)
 and joins them again, re-evaluating the join's grid only round the samples that moved
-(`reconstruct.sdf_grid`, `reconstruct.closed_grid`). `save` / `load` (and
+(`reconstruct.atlas_remesh`, `reconstruct.sdf_grid`, `reconstruct.closed_grid`). `save` / `load` (and
 `SurfaceReconstructor.save` / `load` of an atlas) carry the charts' maps, the partition, the
 signs and the join's last samples and mesh to another process, where `remesh` runs without
 torch.
@@ -35,13 +35,13 @@ import os
 import threading
 import time
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import trimesh
 from sklearn.base import BaseEstimator
 
+from .atlas_remesh import remesh_atlas
 from .atlas_state import ATLAS_FORMAT, atlas_from_state, atlas_state
 from .chart_fit import (
     BegunFit,
@@ -51,16 +51,14 @@ from .chart_fit import (
     n_chart_workers,
     warm_up,
 )
-from .chart_parts import ChartPart, chart_part, unchanged
+from .chart_parts import ChartPart, chart_part
 from .chart_sides import ChartSides, UnchartedTracker, uncharted_points
 from .charts import ChartDecomposition
 from .closed_grid import ClosedSDF
 from .errors import (
-    DegenerateCloudError,
     FitError,
     InvalidInputError,
     NotFittedError,
-    ReconstructionError,
     ReconstructionWarning,
 )
 from .io import one_line, read_state, write_state
@@ -71,7 +69,6 @@ from .join import (
     check_up,
     faces_seen_side,
     implicit_mesh,
-    kept_mesh,
     kept_topology,
     orient_charts,
     owned,
@@ -87,10 +84,6 @@ from .validation import check_points
 
 log = logging.getLogger(__name__)
 
-#: Charts re-meshed at once, in threads (ONNX Runtime, GEOS and qhull release the GIL): torus
-#: 22k, 37 charts, 2 cores: 266 -> 187 ms when measured; 280 -> 265 ms on a slower day
-#: (2026-12-04), when most of a chart's 7.7 ms held the GIL (Python and small numpy calls).
-REMESH_THREADS = 2
 #: In an open join, a chart's faces with an edge this many times longer than its median edge
 #: are filled with samples (`join.stretched_samples`; its grid's diagonals are 1.4 times its
 #: sides). A closed join closes such gaps itself, and the samples only add noise there
@@ -522,83 +515,12 @@ class AtlasReconstructor(BaseEstimator):
         that moved (`SparseSDF.update`, `ClosedSDF.update` when closed) and gives back the same
         mesh when none of its samples did. Torus 22k, 37 charts, 44,600 vertices: a new λ or
         depth meshes 0-1 charts (the figurine 13-19 of 37; a mug's or an open surface's charts
-        mostly own part of their outlines, and are all meshed)."""
+        mostly own part of their outlines, and are all meshed). A chart whose boundary cannot
+        take the parameters keeps its own (one warning); when no chart can, the error is
+        raised and the atlas is as it was (`reconstruct.atlas_remesh`)."""
         if not hasattr(self, "charts_"):
             raise NotFittedError("fit() the atlas first")
-        started = time.perf_counter()
-        parts = self.__dict__.get("_parts")
-        if parts is not None and len(parts) != len(self.charts_):
-            parts = None
-        if parts is not None and "_owners" not in self.__dict__:  # loaded with its parts
-            self._owners = self._chart_owners()
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", ReconstructionWarning)
-            with ThreadPoolExecutor(min(REMESH_THREADS, len(self.charts_))) as pool:
-                fresh = list(pool.map(lambda i: self._remesh_chart(
-                    i, None if parts is None else parts[i], params), range(len(self.charts_))))
-        said = [w for w in caught if issubclass(w.category, ReconstructionWarning)]
-        if said:  # one line for the atlas, not one per chart
-            warnings.warn(f"{len(said)} of {len(self.charts_)} charts: {said[0].message}",
-                          ReconstructionWarning, stacklevel=2)
-        refused = [exc for exc in fresh if isinstance(exc, Exception)]
-        if len(refused) == len(self.charts_):
-            raise refused[0]  # no chart took them: the atlas is as it was
-        if refused:
-            warnings.warn(f"{len(refused)} of {len(self.charts_)} charts keep their mesh: "
-                          f"{one_line(refused[0])}", ReconstructionWarning, stacklevel=2)
-            fresh = [exc is True for exc in fresh]
-        self.timings_["remesh charts"] = time.perf_counter() - started
-        if (any(fresh) or self.__dict__.get("_joined_up") != self._up_key()
-                or not self._mesh_stands()):
-            self._join(decide=False, fresh=fresh)
-            moved, nodes = self._sdf.n_changed_, self._sdf.n_evaluated_
-        else:  # every chart's part as it was: the same samples, the same mesh
-            self.timings_["join"], moved, nodes = 0.0, 0, 0
-        self.timings_["remesh"] = time.perf_counter() - started
-        self.remesh_counts_ = {"charts meshed": sum(fresh), "samples moved": moved,
-                               "nodes evaluated": nodes}
-        log.info("atlas re-meshed: %d of %d charts meshed, %d of %d join samples changed, %d "
-                 "nodes evaluated (%.0f ms)", sum(fresh), len(self.charts_), moved,
-                 len(self.samples_), nodes, 1000 * self.timings_["remesh"])
-        return self.mesh_
-
-    def _mesh_stands(self) -> bool:
-        """Whether ``mesh_`` is the join of the charts' parts as they are: it is, unless the
-        atlas was loaded and has not joined since; then the mesh its join's grid kept (the
-        same samples: `join.kept_mesh`) is taken if there is one."""
-        if "mesh_" in vars(self):
-            return True
-        grid = self.__dict__.get("_sdf")
-        mesh = None if grid is None else kept_mesh(grid, trim=self.trim, closed=self.closed_,
-                                                   seal=self.seal_)
-        if mesh is None:
-            return False
-        self.mesh_, self.samples_, self.normals_ = mesh, grid.samples_, grid.normals_
-        self.watertight_, self.winding_consistent_, self.euler_ = topology(mesh.faces)
-        self._joined_up = self._up_key()
-        return True
-
-    def _remesh_chart(self, index: int, part: ChartPart | None,
-                      params: dict) -> bool | ReconstructionError:
-        """Re-mesh chart ``index`` with ``params`` unless its ``part`` of the join cannot
-        change (`chart_parts.unchanged`); returns whether it was meshed, or the error of a
-        chart whose boundary cannot take them (a small chart's spline that a large λ collapses,
-        too few points at a depth: the chart keeps its parameters and mesh)."""
-        chart = self.charts_[index]
-        test = None
-        if part is not None:  # else not joined since loaded or fitted: nothing to compare with
-            labels, tree = self._owners
-            reach = self.reach * self.decomposition_.spacing_
-
-            def mine(positions):
-                return owned([positions], labels, tree, reach, charts=[index])[0]
-
-            def test(outline, spacing, grid):
-                return unchanged(part, outline, spacing, chart.surface_map_, mine, grid)
-        try:
-            return chart.remesh_unless(test, **params)
-        except (FitError, DegenerateCloudError) as exc:
-            return exc
+        return remesh_atlas(self, params)
 
     def _up_key(self):
         """What of ``up`` an open join's mesh depends on (`_face_seen_side`)."""

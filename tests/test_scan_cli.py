@@ -121,3 +121,10 @@ def test_entry_point_runs_as_a_program():
 def test_plan_file_round_trip(tmp_path, fast_params):
     plan = dataclasses.replace(ScanPlan.turn(4), reconstruction=fast_params)
     assert ScanPlan.from_json(plan.to_json()) == plan
+
+
+def test_scan_help_names_every_built_in_object():
+    from capture.commands.scan import BUILT_IN_OBJECTS
+    from sim.objects import BUILT_IN
+
+    assert set(BUILT_IN_OBJECTS) == set(BUILT_IN)

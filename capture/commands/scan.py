@@ -9,6 +9,9 @@ from __future__ import annotations
 import logging
 
 log = logging.getLogger("capture.cli")
+#: `sim.objects.BUILT_IN`'s names (the CLI does not import the simulator to list them).
+BUILT_IN_OBJECTS = ("vase", "bust", "box", "mug", "torus", "figurine", "hook", "sheets", "chair",
+                    "knot")
 
 
 def add_parser(subparsers) -> None:
@@ -20,7 +23,7 @@ def add_parser(subparsers) -> None:
                         "(default: simulated)")
     parser.add_argument("--views", type=int, default=36, help="views over one turn (36)")
     parser.add_argument("--object", metavar="PATH", help="mesh the simulated camera sees "
-                        "(file or built-in name: vase, bust, box)")
+                        f"(file or built-in name: {', '.join(BUILT_IN_OBJECTS)})")
     parser.add_argument("-o", "--output", default=None, metavar="DIR",
                         help="output folder, new or empty (default: scans/scan-DATE-TIME)")
     parser.add_argument("--frames", type=int, default=3, help="frames per view, median-combined")

@@ -213,13 +213,31 @@ def test_topology_reads_as_trimesh_does():
     assert topology(np.zeros((0, 3), int)) == (False, False, 0)
 
 
-def test_a_stretched_chart_is_filled_on_its_faces():
-    from scipy.spatial import Delaunay, cKDTree
+def stretched_grid():
+    """A chart's mesh on an 8 × 8 grid (u, v) whose map stretches 3 < u < 5 four times, the
+    same grid level, and u."""
+    from scipy.spatial import Delaunay
 
     u, v = np.mgrid[0:8, 0:8].reshape(2, -1).astype(float)
     faces = Delaunay(np.c_[u, v]).simplices
-    x = u + 3 * np.clip(u - 3, 0, 2)  # the map stretches 3 < u < 5 four times
-    mesh = trimesh.Trimesh(np.c_[x, v, np.sin(u)], faces, process=False)
+    x = u + 3 * np.clip(u - 3, 0, 2)
+    return (trimesh.Trimesh(np.c_[x, v, np.sin(u)], faces, process=False),
+            trimesh.Trimesh(np.c_[u, v, 0 * u], faces, process=False), u)
+
+
+def assert_gap_filled(mesh, kept, extra, low, high):
+    """Between x = ``low`` and ``high`` the kept vertices leave gaps over 1.3, and with the
+    ``extra`` samples none."""
+    from scipy.spatial import cKDTree
+
+    probe = trimesh.sample.sample_surface(mesh, 4000, seed=0)[0]
+    probe = probe[(probe[:, 0] > low) & (probe[:, 0] < high)]
+    gap = cKDTree(np.concatenate([mesh.vertices[kept], extra])).query(probe)[0].max()
+    assert gap < 1.3 < cKDTree(mesh.vertices[kept]).query(probe)[0].max()
+
+
+def test_a_stretched_chart_is_filled_on_its_faces():
+    mesh, level, u = stretched_grid()
     kept = np.flatnonzero(u < 6)  # the chart's own part
     normals = np.tile([0.0, 0.0, 1.0], (len(kept), 1))
     ((extra, extra_normals),) = stretched_samples([mesh], [kept], [normals], 2.0)
@@ -227,23 +245,14 @@ def test_a_stretched_chart_is_filled_on_its_faces():
     assert (extra[:, 0] > 3 - 1e-9).all() and (extra[:, 0] < 11 + 1e-9).all()  # stretched, kept
     assert trimesh.proximity.closest_point(mesh, extra)[1].max() < 1e-9  # on the chart's faces
     np.testing.assert_allclose(extra_normals, np.tile([0.0, 0.0, 1.0], (len(extra), 1)))
-    probe = trimesh.sample.sample_surface(mesh, 4000, seed=0)[0]
-    probe = probe[(probe[:, 0] > 3) & (probe[:, 0] < 11)]
-    gap = cKDTree(np.concatenate([mesh.vertices[kept], extra])).query(probe)[0].max()
-    assert gap < 1.3 < cKDTree(mesh.vertices[kept]).query(probe)[0].max()
-    level = trimesh.Trimesh(np.c_[u, v, 0 * u], faces, process=False)
+    assert_gap_filled(mesh, kept, extra, 3, 11)
     both = stretched_samples([level, mesh], [kept, kept], [normals, normals], 2.0)
     assert len(both[0][0]) == 0  # sides of 1 and diagonals of 1.4: nothing to fill
     np.testing.assert_array_equal(both[1][0], extra)  # each chart by its own median
 
 
 def test_a_face_across_the_border_between_two_parts_is_filled():
-    from scipy.spatial import Delaunay, cKDTree
-
-    u, v = np.mgrid[0:8, 0:8].reshape(2, -1).astype(float)
-    faces = Delaunay(np.c_[u, v]).simplices
-    x = u + 3 * np.clip(u - 3, 0, 2)  # the map stretches 3 < u < 5 four times
-    mesh = trimesh.Trimesh(np.c_[x, v, np.sin(u)], faces, process=False)
+    mesh, level, u = stretched_grid()
     kept = np.flatnonzero(u < 4)  # the border between two parts crosses the stretched band
     normals = np.tile([0.0, 0.0, 1.0], (len(kept), 1))
     border = border_vertices(mesh, kept)
@@ -256,11 +265,7 @@ def test_a_face_across_the_border_between_two_parts_is_filled():
     assert len(extra) > 0
     assert (extra[:, 0] > 3 + 1e-9).all() and (extra[:, 0] < 7 - 1e-9).all()
     np.testing.assert_allclose(extra_normals, np.tile([0.0, 0.0, 1.0], (len(extra), 1)))
-    probe = trimesh.sample.sample_surface(mesh, 4000, seed=0)[0]
-    probe = probe[(probe[:, 0] > 3) & (probe[:, 0] < 4.5)]
-    gap = cKDTree(np.concatenate([mesh.vertices[kept], extra])).query(probe)[0].max()
-    assert gap < 1.3 < cKDTree(mesh.vertices[kept]).query(probe)[0].max()
-    level = trimesh.Trimesh(np.c_[u, v, 0 * u], faces, process=False)
+    assert_gap_filled(mesh, kept, extra, 3, 4.5)
     ((flat, _),) = stretched_samples([level], [kept], [normals], 2.0, [border])
     assert ((flat[:, 0] > 3) & (flat[:, 0] < 4)).all()  # at half an edge, not at 2 edges
 

@@ -22,10 +22,10 @@ or a hole wider than a few spacings.
 
 `remesh(lam=..., depth=...)` re-meshes every chart through its stored ONNX map (no retraining)
 and joins them again, re-evaluating the join's grid only round the samples that moved
-(`reconstruct.atlas_remesh`, `reconstruct.sdf_grid`, `reconstruct.closed_grid`). `save` / `load` (and
-`SurfaceReconstructor.save` / `load` of an atlas) carry the charts' maps, the partition, the
-signs and the join's last samples and mesh to another process, where `remesh` runs without
-torch.
+(`reconstruct.atlas_remesh`, `reconstruct.sdf_grid`, `reconstruct.closed_grid`). `save` /
+`load` (and `SurfaceReconstructor.save` / `load` of an atlas) carry the charts' maps, the
+partition, the signs and the join's last samples and mesh to another process, where `remesh`
+runs without torch.
 """
 
 from __future__ import annotations

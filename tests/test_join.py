@@ -267,7 +267,8 @@ def test_a_face_across_the_border_between_two_parts_is_filled():
     np.testing.assert_allclose(extra_normals, np.tile([0.0, 0.0, 1.0], (len(extra), 1)))
     assert_gap_filled(mesh, kept, extra, 3, 4.5)
     ((flat, _),) = stretched_samples([level], [kept], [normals], 2.0, [border])
-    assert ((flat[:, 0] > 3) & (flat[:, 0] < 4)).all()  # at half an edge, not at 2 edges
+    # unstretched: only the diagonals across (1.4 edges) get a sample, at their midpoints
+    np.testing.assert_allclose(flat[:, :2], np.c_[np.full(7, 3.5), np.arange(7) + 0.5])
 
 
 def test_an_open_join_faces_the_side_it_was_seen_from():

@@ -217,8 +217,7 @@ class SurfaceReconstructor(BaseEstimator):
         embedded : `embed`'s of these points with these parameters: its embedding and
             boundary samples are taken instead of computed (the same mesh)."""
         self._check_mesh_params()
-        if self.atlas not in ATLAS_MODES:
-            raise InvalidInputError(f"atlas must be one of {ATLAS_MODES}, got {self.atlas!r}")
+        self._check_fit_params()
         points = np.array(check_points(points))  # its own: ``points_`` may be this array
         if embedded is not None:
             self._check_embedded(embedded, points, warm_start)
@@ -237,6 +236,20 @@ class SurfaceReconstructor(BaseEstimator):
         finally:
             if spare is not None:
                 spare.cancel()  # nothing, when the atlas took it up
+
+    def _check_fit_params(self) -> None:
+        """The fit's own parameters, checked before any work: a cloud that goes straight to
+        the atlas never reaches the search that checks its limits (``max_layers=0`` was taken
+        without a word)."""
+        if self.atlas not in ATLAS_MODES:
+            raise InvalidInputError(f"atlas must be one of {ATLAS_MODES}, got {self.atlas!r}")
+        for name in ("max_layers", "max_neurons"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and int(value) == value >= 1):  # as `AdaptiveMLP`'s
+                raise InvalidInputError(f"{name} must be a whole number >= 1, got {value}")
+        seed = self.random_state
+        if isinstance(seed, (int, np.integer)) and seed < 0:
+            raise InvalidInputError(f"random_state (the seed) must be >= 0, got {seed}")
 
     def embed(self, points, depths=()) -> Embedded:
         """The start of `fit` that needs no network: embed ``points`` (n, 3) and sample their

@@ -178,6 +178,20 @@ def test_unfitted_and_bad_parameters(plane_model):
         plane_model.remesh(max_layers=3)
 
 
+@pytest.mark.parametrize("params, message", [
+    ({"max_layers": 0}, "max_layers must be a whole number >= 1, got 0"),
+    ({"max_neurons": 2.5}, "max_neurons must be a whole number >= 1, got 2.5"),
+    ({"random_state": -1}, "random_state .* must be >= 0, got -1"),
+    ({"atlas": "sometimes"}, "atlas must be one of"),
+])
+def test_bad_fit_parameters_are_refused_before_any_work(params, message):
+    # a sphere goes straight to the atlas, whose charts never ran the search that checked
+    # max_layers: 0 was taken without a word (`scanstation reconstruct --max-layers 0`)
+    sphere = trimesh.creation.icosphere(2).vertices
+    with pytest.raises(InvalidInputError, match=message):
+        SurfaceReconstructor(**params).fit(sphere)
+
+
 def test_collinear_cloud_is_rejected():
     with pytest.raises(DegenerateCloudError, match="collinear"):
         SurfaceReconstructor().fit(np.outer(np.linspace(0, 1, 100), [1, 2, 3]))

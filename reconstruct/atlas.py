@@ -121,6 +121,7 @@ class AtlasReconstructor(BaseEstimator):
         its volume.
     hidden_layers, n_neighbors : the charts' layer widths and K, e.g. of a one-chart fit of the
         same cloud (`SurfaceReconstructor`); None: the first chart's search and choice.
+    max_layers, max_neurons : the limits of that search (`AdaptiveMLP`).
     graph : an unfitted `SheetGraph` (its parameters); None: the defaults.
     max_points : a denser cloud is charted, fitted and joined on this many of its points (drawn
         at random; each chart's net trains on at most 6,000 points anyway). At σ 1 % more
@@ -152,6 +153,7 @@ class AtlasReconstructor(BaseEstimator):
                  voxel: float = 0.5, band: float = 3.0, trim: float = 1.0, reach: float = 1.0,
                  shell: float = 1.0, closed: bool | None = None,
                  hidden_layers: tuple[int, ...] | None = None, n_neighbors: int | None = None,
+                 max_layers: int = 2, max_neurons: int = 20,
                  graph: SheetGraph | None = None, max_points: int = 20000,
                  n_jobs: int | None = -1,
                  up: tuple[float, float, float] | None = (0.0, 0.0, 1.0),
@@ -170,6 +172,8 @@ class AtlasReconstructor(BaseEstimator):
         self.closed = closed
         self.up = up
         self.hidden_layers = hidden_layers
+        self.max_layers = max_layers
+        self.max_neurons = max_neurons
         self.n_neighbors = n_neighbors
         self.graph = graph
         self.max_points = max_points
@@ -323,7 +327,8 @@ class AtlasReconstructor(BaseEstimator):
         self.points_ = points
         fitted, self.faults_ = fit_every_chart(
             decomposition, points, workers, self._embed_params(), self.hidden_layers,
-            self.reuse_layers, self.max_splits, ahead, started)
+            self.reuse_layers, self.max_splits, ahead, started,
+            search=dict(max_layers=self.max_layers, max_neurons=self.max_neurons))
         return points, fitted
 
     def _embed_params(self) -> dict:

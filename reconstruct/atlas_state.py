@@ -15,7 +15,8 @@ from .sdf_grid import SparseSDF
 
 ATLAS_FORMAT = "scanstation-atlas/1"
 #: Parameters of the fit alone, not saved: a loaded atlas re-meshes, it does not fit.
-FIT_ONLY_PARAMS = ("graph", "n_jobs", "hidden_layers", "n_neighbors")
+FIT_ONLY_PARAMS = ("graph", "n_jobs", "hidden_layers", "n_neighbors", "max_layers",
+                   "max_neurons")
 
 
 def atlas_state(atlas) -> tuple[dict, dict[str, np.ndarray]]:

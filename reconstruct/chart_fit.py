@@ -82,9 +82,10 @@ def embed_chart(points, lam: float, depth: int, random_state, n_neighbors: int) 
 
 def fit_chart(points, lam: float, depth: int, random_state, n_neighbors: int | None = None,
               hidden_layers: tuple[int, ...] | None = None,
-              embedded: Embedded | None = None) -> tuple:
-    """Fit one chart (m, 3) with the paper's pipeline: a search, or the given ``hidden_layers``
-    and K (``embedded``: `embed_chart`'s of these points, taken up). Returns (fitted
+              embedded: Embedded | None = None, search: dict | None = None) -> tuple:
+    """Fit one chart (m, 3) with the paper's pipeline: a search (``search``: `AdaptiveMLP`'s
+    limits, ``max_layers`` and ``max_neurons``), or the given ``hidden_layers`` and K
+    (``embedded``: `embed_chart`'s of these points, taken up). Returns (fitted
     `SurfaceReconstructor` or None, fault or None): the fault says why the chart is not
     faithful (`faithfulness`) or could not be fitted."""
     from .mlp import AdaptiveMLP
@@ -96,7 +97,7 @@ def fit_chart(points, lam: float, depth: int, random_state, n_neighbors: int | N
             hidden_layers=hidden_layers, final_starts=CHART_FINAL_STARTS,
             random_state=random_state))
     else:  # the first chart's search, as a one-chart fit's but without its weight decay
-        params.update(mlp=AdaptiveMLP(random_state=random_state))
+        params.update(mlp=AdaptiveMLP(random_state=random_state, **(search or {})))
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ReconstructionWarning)
@@ -199,13 +200,14 @@ def fit_charts(clouds: list[np.ndarray], workers=None, embedded=None, **params) 
 
 def fit_every_chart(decomposition, points, workers, params: dict, hidden_layers,
                     reuse_layers: bool, max_splits: int, ahead: dict,
-                    started: float) -> tuple[dict, list[str]]:
+                    started: float, search: dict | None = None) -> tuple[dict, list[str]]:
     """Fit every chart of ``decomposition`` (a fitted `ChartDecomposition` of ``points``
     (m, 3)) by `fit_charts` with ``params`` (`embed_chart`'s) and ``hidden_layers`` (None: the
     first chart searches them, and with ``reuse_layers`` its layers and K serve the others),
     splitting an unfaithful chart up to ``max_splits`` times along one line of descent.
     ``ahead``: {chart index: `Embedded`} of charts embedded ahead with ``params`` (taken up,
-    and emptied); ``started``: the fit's start (`time.perf_counter`), for the log. Returns
+    and emptied); ``started``: the fit's start (`time.perf_counter`), for the log; ``search``:
+    the limits of the first chart's search (`fit_chart`). Returns
     ({chart index: (fitted `SurfaceReconstructor` or None, its point indices)}, the faults
     left)."""
     fitted: dict[int, tuple] = {}
@@ -224,7 +226,7 @@ def fit_every_chart(decomposition, points, workers, params: dict, hidden_layers,
         if chart_params["n_neighbors"] != params["n_neighbors"]:  # embedded with another K
             embedded = None
         results = fit_charts([points[m] for m in members], workers, embedded,
-                             hidden_layers=layers, **chart_params)
+                             hidden_layers=layers, search=search, **chart_params)
         for (index, splits), chart, (reconstructor, fault) in zip(
                 batch, members, results, strict=True):
             if fault is not None and splits < max_splits and len(

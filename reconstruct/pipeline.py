@@ -384,10 +384,12 @@ class SurfaceReconstructor(BaseEstimator):
         return None
 
     def _new_atlas(self):
-        """An unfitted `AtlasReconstructor` with this reconstruction's λ, depth and seed."""
+        """An unfitted `AtlasReconstructor` with this reconstruction's λ, depth, search limits
+        and seed."""
         from .atlas import AtlasReconstructor
 
         return AtlasReconstructor(lam=self.lam, depth=self.depth, up=self.up,
+                                  max_layers=self.max_layers, max_neurons=self.max_neurons,
                                   random_state=self.random_state)
 
     def _fit_atlas(self, points, reason: str, hidden_layers: tuple[int, ...] | None = None,

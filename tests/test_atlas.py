@@ -203,6 +203,10 @@ def test_the_reconstructor_fits_an_atlas_for_a_closed_cloud_by_itself():
         warnings.simplefilter("error", ReconstructionWarning)
         model = SurfaceReconstructor(max_layers=1, max_neurons=8).fit(points)
     assert "residual variance" in model.atlas_reason_
+    # the search limits reach the atlas's search, not only a one-chart fit's
+    assert model.atlas_.max_layers == 1 and model.atlas_.max_neurons == 8
+    assert all(len(c.hidden_layers_) == 1 and c.hidden_layers_[0] <= 8
+               for c in model.atlas_.charts_)
     assert model.mesh_.is_watertight and model.mesh_.euler_number == 2
     assert model.unexplained_ <= 0.05
     assert not hasattr(model, "surface_map_")

@@ -8,6 +8,8 @@ import logging
 import sys
 import warnings
 
+from . import LOGGERS
+
 #: sub-command modules, imported lazily so `scanstation --help` stays fast.
 COMMANDS = ("demo", "scan", "replay", "reprocess", "calibrate", "reconstruct", "remesh",
             "devices", "serve", "simulate")
@@ -39,7 +41,7 @@ def _setup_output(quiet: bool, verbose: bool) -> None:
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(logging.WARNING)
-    for name in ("capture", "reconstruct", "drivers", "sim"):
+    for name in LOGGERS:
         logging.getLogger(name).setLevel(level)
 
     def one_line_warning(message, category, filename, lineno, file=None, line=None):

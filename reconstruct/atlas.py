@@ -464,8 +464,9 @@ class AtlasReconstructor(BaseEstimator):
 
     def _fill_stretched(self, parts, chart_samples_, chart_normals, reach):
         """Add to each chart's samples and normals (lists, in place) those on its faces that
-        its map stretches (`join.stretched_samples`) lying in its own part of the cloud, as its
-        vertices must; found once per chart mesh (kept in its part)."""
+        its map stretches and on its faces across the border with another chart's part
+        (`join.stretched_samples`), lying in its own part of the cloud, as its vertices must;
+        found once per chart mesh (kept in its part)."""
         todo = [i for i, part in enumerate(parts) if part.extra is None]
         skipped = [i for i in todo if "mesh_" not in vars(self.charts_[i])]
         if skipped:  # joined closed since: meshed again, their parts (the same) indexed anew

@@ -243,10 +243,7 @@ class SurfaceReconstructor(BaseEstimator):
         without a word)."""
         if self.atlas not in ATLAS_MODES:
             raise InvalidInputError(f"atlas must be one of {ATLAS_MODES}, got {self.atlas!r}")
-        for name in ("max_layers", "max_neurons"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and int(value) == value >= 1):  # as `AdaptiveMLP`'s
-                raise InvalidInputError(f"{name} must be a whole number >= 1, got {value}")
+        self._new_mlp()._check_params()  # its search limits, as the search would check them
         seed = self.random_state
         if isinstance(seed, (int, np.integer)) and seed < 0:
             raise InvalidInputError(f"random_state (the seed) must be >= 0, got {seed}")

@@ -11,6 +11,7 @@ import time  # noqa: E402
 import pytest  # noqa: E402
 from scan_helpers import FAST_PARAMS  # noqa: E402
 
+from capture import LOGGERS  # noqa: E402
 from capture.plan import ReconstructionParams  # noqa: E402
 
 # Dask's client threads may log after a test ends, into a stream pytest's capture has closed:
@@ -67,10 +68,6 @@ def no_leaked_threads():
         pytest.fail(f"test leaked threads: {', '.join(t.name for t in leaked)}")
 
 
-#: The loggers whose levels the CLI sets for its output (`capture.cli`).
-CLI_LOGGERS = ("capture", "reconstruct", "drivers", "sim")
-
-
 @pytest.fixture(autouse=True)
 def cli_output_restored():
     """A test that runs the CLI leaves the logging and warnings as it found them: its INFO
@@ -79,7 +76,7 @@ def cli_output_restored():
 
     root = logging.getLogger()
     handlers, level = root.handlers[:], root.level
-    levels = {name: logging.getLogger(name).level for name in CLI_LOGGERS}
+    levels = {name: logging.getLogger(name).level for name in LOGGERS}
     showwarning = warnings.showwarning
     yield
     for handler in root.handlers[:]:  # the CLI's own (pytest adds and drops its per phase)

@@ -27,6 +27,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from .. import LOGGERS
 from ..documents import subscribe
 from .tracking import as_dict, write_live_mesh
 
@@ -319,7 +320,7 @@ def _child(documents, commands, spec: RunSpec) -> None:
     except OSError:  # the folder cannot be made: the runner's own check says why
         held = None  # noqa: F841
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
-    for name in ("capture", "reconstruct", "drivers", "sim"):
+    for name in LOGGERS:
         logging.getLogger(name).setLevel(spec.log_level)
     lock = threading.Lock()
 

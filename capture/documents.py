@@ -82,7 +82,8 @@ class ViewDocument(Document):
 @dataclasses.dataclass(frozen=True)
 class ProgressDocument(Document):
     """After each view: views recorded (this scan, all segments), points the view added after
-    processing, points of the merged cloud, seconds since start."""
+    processing, points of the merged cloud, seconds since start, and the limits of view the
+    object reaches in it ("image edge", "wall", "roof": `ViewProcessor.limits`)."""
 
     kind: ClassVar[str] = "progress"
     views_done: int
@@ -90,6 +91,7 @@ class ProgressDocument(Document):
     view_points: int
     cloud_points: int
     elapsed_s: float
+    view_limits: tuple[str, ...] = ()
 
     @property
     def fraction(self) -> float:
@@ -166,6 +168,8 @@ def from_dict(data: dict) -> Document:
     values = {k: v for k, v in data.items() if k in names}
     if cls is ViewDocument:
         values["timestamps"] = tuple(values.get("timestamps", ()))
+    if cls is ProgressDocument:
+        values["view_limits"] = tuple(values.get("view_limits", ()))
     return cls(**values)
 
 

@@ -20,6 +20,10 @@ from .volume import Cylinder
 
 log = logging.getLogger(__name__)
 
+#: Points (or pixels) of one view at a limit of what the station sees before the object is
+#: taken to reach it (`ViewProcessor.limits`): a stray pixel or two does not.
+LIMIT_POINTS = 10
+
 
 @functools.lru_cache(maxsize=8)
 def _pixel_rays(height: int, width: int, k: tuple[float, ...]) -> np.ndarray:
@@ -191,6 +195,29 @@ class ViewProcessor:
         if not self.outlier_neighbors or len(points) <= self.outlier_neighbors:
             return points
         return points[statistical_outlier_mask(points, self.outlier_neighbors, self.outlier_std)]
+
+    def limits(self, depth, angle_deg: float, points) -> tuple[str, ...]:
+        """Which limits of what the station sees the object reaches in one view: "image edge"
+        (at least `LIMIT_POINTS` pixels of the image's outermost rows and columns see into the
+        working volume), "wall" or "roof" (as many ``points`` (m, 3) of `process` within a
+        voxel of the volume's side or top). What lies beyond them is not scanned; the floor,
+        which cuts the plate away, is not one."""
+        depth = np.asarray(depth)
+        cyl = _volume_of(self.volume)
+        outer = np.zeros(depth.shape, bool)
+        outer[[0, -1], :] = outer[:, [0, -1]] = True
+        seen = depth_to_points(depth, self.calibration.intrinsics, pixels=outer.ravel())
+        reached = []
+        if self.crop(self.to_object(seen, angle_deg)).sum() >= LIMIT_POINTS:
+            reached.append("image edge")
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        near = max(self.voxel_mm or 0.0, 1.0)
+        radius = np.hypot(points[:, 0], points[:, 1])
+        if (radius >= cyl.radius_mm - near).sum() >= LIMIT_POINTS:
+            reached.append("wall")
+        if (points[:, 2] >= cyl.z_max_mm - near).sum() >= LIMIT_POINTS:
+            reached.append("roof")
+        return tuple(reached)
 
     def process(self, depth, angle_deg: float) -> np.ndarray:
         """One frame at table angle ``angle_deg`` → (m, 3) float64 object-frame points, mm."""

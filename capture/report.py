@@ -11,6 +11,7 @@ scan's outcome stands.
 
 from __future__ import annotations
 
+import collections
 import json
 import logging
 import time
@@ -47,6 +48,7 @@ class ScanReport:
         self._start: StartDocument | None = None
         self._captured: float | None = None  # monotonic time at the end of capture
         self._final_mesh_s: float | None = None
+        self._limits: collections.Counter = collections.Counter()  # views reaching each
 
     def __call__(self, document: Document) -> None:
         now = time.monotonic()
@@ -59,6 +61,7 @@ class ScanReport:
             self.image_shape = tuple(np.shape(document.frames[0]))
         elif kind == "progress":
             self._captured = now
+            self._limits.update(document.view_limits)
         elif kind == "mesh" and document.final and self._final_mesh_s is None:
             self._final_mesh_s = now - self._captured
         elif kind == "stop" and self._start is not None:
@@ -87,6 +90,7 @@ class ScanReport:
                 "final_mesh_s": self._final_mesh_s,
                 "total_s": now - self._started,
             },
+            "limits_reached": dict(self._limits),  # views where the object reached each
             "mesh": self.engine.figures if self.engine is not None else None,
             "quality": None,
         }

@@ -16,6 +16,7 @@ subscriber (`capture.report.ScanReport`).
 
 from __future__ import annotations
 
+import collections
 import json
 import logging
 import threading
@@ -106,6 +107,8 @@ class ScanRunner(RunLifecycle):
         self.reason = ""
         self.image_shape: tuple[int, int] | None = None
         self.error: BaseException | None = None
+        self._said_empty = False  # a view without points was reported
+        self._limits: collections.Counter = collections.Counter()  # views reaching each limit
 
     @classmethod
     def resume_recording(cls, out_dir, **kwargs) -> ScanRunner:
@@ -238,11 +241,14 @@ class ScanRunner(RunLifecycle):
             log.info("resumed %d recorded views; %d to capture", len(self._recorded),
                      len(self._pending))
 
-    def _process(self, combined, angle_deg: float) -> int:
+    def _process(self, combined, angle_deg: float) -> tuple[int, tuple[str, ...]]:
+        """Process and merge one view; (its points, the limits of view it reaches)."""
         points = self.processor.process(combined, angle_deg)
         if self.engine is not None:
             self.engine.add_view(points)
-        return len(points)
+        limits = self.processor.limits(combined, angle_deg, points)
+        self._limits.update(limits)
+        return len(points), limits
 
     def _device(self, name: str, call, *args):
         try:
@@ -322,9 +328,16 @@ class ScanRunner(RunLifecycle):
                    valid_pixels=int((combined > 0).sum()),
                    timestamps=tuple(float(t) for t in timestamps), frames=tuple(depths))
         self._views_done += 1
-        n_points = self._process(combined, measured)
+        n_points, limits = self._process(combined, measured)
+        if n_points == 0 and not self._said_empty:  # once: the camera sees nothing to scan
+            self._said_empty = True
+            volume = self.plan.volume
+            log.warning("view %d/%d: no points in the working volume (radius %g mm, %g-%g mm "
+                        "above the plate): is the object on the plate and inside it?",
+                        index + 1, self.plan.n_views, volume.radius_mm, volume.z_min_mm,
+                        volume.z_max_mm)
         self._emit(ProgressDocument, views_done=self._views_done, views_total=self.plan.n_views,
-                   view_points=n_points,
+                   view_points=n_points, view_limits=limits,
                    cloud_points=len(self.engine.cloud) if self.engine else 0,
                    elapsed_s=time.monotonic() - self._started)
 
@@ -334,15 +347,31 @@ class ScanRunner(RunLifecycle):
 
     # -- the end -------------------------------------------------------------------------------
     def _finish(self) -> None:
+        self._say_limits()
         if self.engine is None:
             return
         mesh = self.engine.finish()
         if mesh is None:
-            raise CaptureError("no mesh: too few points in the working volume (is the object "
-                               "inside it?)")
+            volume = self.plan.volume
+            seen = len(self.engine.cloud.points(self.engine.params.min_views))
+            raise CaptureError(
+                f"no mesh: {seen} points in the working volume (radius {volume.radius_mm:g} mm, "
+                f"{volume.z_min_mm:g}-{volume.z_max_mm:g} mm above the plate) were seen in "
+                f"{self.engine.params.min_views} views or more: is the object on the plate and "
+                f"inside it?")
         self.outputs.write_mesh(mesh)
         self.outputs.write_cloud(self.engine.fitted_points)
         self.outputs.write_engine(self.engine)
+
+    def _say_limits(self) -> None:
+        """One warning per limit of view the object reached (`ViewProcessor.limits`)."""
+        volume, views = self.plan.volume, self.plan.n_views
+        where = {"image edge": "the edge of the camera's image",
+                 "wall": f"the working volume's side ({volume.radius_mm:g} mm from the axis)",
+                 "roof": f"the working volume's top ({volume.z_max_mm:g} mm above the plate)"}
+        for limit, count in self._limits.items():
+            log.warning("the object reaches %s in %d of %d views: what lies beyond is not "
+                        "scanned", where[limit], count, views)
 
     def _end(self, event: str, reason: str) -> None:
         """Report, emit the stop document and reach the final state, whatever fails on the way

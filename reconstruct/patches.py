@@ -191,6 +191,8 @@ class PatchSplit(BaseEstimator):
         points = np.asarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3 or not np.all(np.isfinite(points)):
             raise InvalidInputError(f"expected finite points of shape (n, 3), got {points.shape}")
+        if len(points) == 0:
+            raise InvalidInputError("no points to split")
         if self.n_sectors < 3:
             raise InvalidInputError(f"n_sectors must be >= 3, got {self.n_sectors}")
         width = 360.0 / self.n_sectors

@@ -131,6 +131,23 @@ def test_crop_removes_plate_and_background():
     assert len(points) > 3000
 
 
+def test_limits_name_the_image_edge_the_side_and_the_top_the_object_reaches():
+    table_to_camera = look_at_table()
+    calibration = Calibration(K, np.linalg.inv(table_to_camera))
+
+    def limits(centre, radius, top=300.0):
+        processor = ViewProcessor(calibration, Cylinder(150, 3, top), 2.0, 0)
+        depth = np.round(render(table_to_camera, [(np.array(centre, float), radius)],
+                                plate_radius=200, wall_mm=900)).astype(np.uint16)
+        return processor.limits(depth, 0.0, processor.process(depth, 0.0))
+    assert limits((0, 0, 60), 40) == ()  # a ball well inside (the plate is cut, not reached)
+    assert limits((0, 0, 100), 40, top=120) == ("roof",)
+    assert limits((120, 0, 60), 40) == ("wall",)
+    # a ball filling the view: the image's edge sees into the volume (and the ball its side)
+    assert limits((0, 0, 60), 260) == ("image edge", "wall")
+    assert limits((0, 0, 60), 400) == ()  # all of it beyond the volume
+
+
 def test_voxel_downsample_one_mean_per_occupied_voxel():
     rng = np.random.default_rng(1)
     points = rng.uniform(-10, 10, (2000, 3))

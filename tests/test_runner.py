@@ -1,17 +1,19 @@
 """The scan runner on the simulated station: state table, documents, pause / resume / cancel,
 lost devices (the simulators' fault knobs), and output checks before the first move."""
 
+import json
 import threading
 import uuid
 
 import numpy as np
 import pytest
-from scan_helpers import CAMERA, plan
+from scan_helpers import CAMERA, FAST_PARAMS, plan
 
 from capture.combine import combine_depths
 from capture.plan import PlanError, ScanPlan
 from capture.recording import read_recording
 from capture.runner import TRANSITIONS, CaptureError, InvalidTransition, ScanRunner
+from capture.volume import Cylinder
 from sim.station import get_station
 
 
@@ -285,3 +287,31 @@ def test_a_resumed_scan_keeps_its_scan_id_across_segments(tmp_path):
     recording = read_recording(tmp_path / "scan")
     assert len(recording.segments) == 2 and recording.scan_id == runner.scan_id
     assert [v.index for v in recording.views] == [0, 1, 2, 3]
+
+
+def test_an_object_outside_the_working_volume_fails_in_one_line_and_keeps_the_views(
+        tmp_path, caplog):
+    above = plan(4, reconstruction=FAST_PARAMS, volume=Cylinder(110.0, 200.0, 250.0))
+    runner = runner_for(tmp_path, above)
+    assert runner.start().wait(timeout=120) == "failed"
+    assert runner.reason == ("no mesh: 0 points in the working volume (radius 110 mm, 200-250 "
+                             "mm above the plate) were seen in 1 views or more: is the object "
+                             "on the plate and inside it?")
+    said = [r.getMessage() for r in caplog.records if "no points in the working" in r.message]
+    assert len(said) == 1 and said[0].startswith("view 1/4: ")  # once, not once per view
+    assert len(read_recording(tmp_path / "scan").views) == 4
+
+
+def test_an_object_cut_by_the_working_volume_is_reported(tmp_path, caplog):
+    low = plan(4, volume=Cylinder(110.0, 3.0, 50.0))  # the box stands 100 mm tall
+    runner = runner_for(tmp_path, low)
+    assert runner.start().wait(timeout=60) == "done"
+    assert [d.view_limits for d in runner.documents if d.kind == "progress"] == [("roof",)] * 4
+    said = [r.getMessage() for r in caplog.records if "reaches" in r.message]
+    assert said == ["the object reaches the working volume's top (50 mm above the plate) in 4 "
+                    "of 4 views: what lies beyond is not scanned"]
+    report = json.loads((tmp_path / "scan" / "scan.json").read_text())
+    assert report["limits_reached"] == {"roof": 4}
+    whole = runner_for(tmp_path / "whole", plan(4))
+    assert whole.start().wait(timeout=60) == "done"
+    assert all(d.view_limits == () for d in whole.documents if d.kind == "progress")

@@ -205,6 +205,10 @@ class IncrementalEngine:
         started = time.perf_counter()
         if not final:
             self.schedule_run.append(views)
+        if len(points) < self.patches.split.min_points:  # nothing a patch could be fitted to
+            log.info("update after %d views: %d points seen in %d views or more, too few to "
+                     "mesh", views, len(points), self.params.min_views)
+            return
         before = dict(self.cache.counts)
         # The sectors' earlier fits may already ask for the atlas: then no final polish.
         reason = atlas_reason(self.params, self._sector_models(), final)

@@ -65,6 +65,22 @@ def test_replay_command_reproduces_the_mesh(scanned, tmp_path, capsys):
     np.testing.assert_array_equal(again.vertices, original.vertices)
 
 
+def test_remesh_takes_a_scan_folder(scanned, tmp_path, capsys):
+    _, out = scanned
+    for source in (out, out / "engine"):
+        mesh = tmp_path / f"{source.name}.ply"
+        assert main(["--quiet", "remesh", str(source), "--lam", "3", "-o", str(mesh)]) == 0
+        assert len(trimesh.load(mesh, process=False).faces) > 1000
+    errors = {(str(out), "--spacing", "2"): "--spacing: a scan re-meshes with --lam and --depth "
+                                             "only",
+              (str(tmp_path),): "a folder without a scan's reconstruction",
+              (str(out / "mesh.ply"),): "not a ScanStation reconstruction state (not an .npz"}
+    for args, message in errors.items():
+        assert main(["remesh", *args, "-o", str(tmp_path / "m.ply")]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1].startswith("scanstation: error: ") and message in err[-1]
+
+
 def test_capture_only_scan_shows_progress(tmp_path, capsys):
     out = tmp_path / "raw"
     code = main(["scan", *sim_urls(), "--views", "3", "--frames", "1", "--settle", "0",

@@ -102,22 +102,6 @@ def trough(offsets: np.ndarray, threshold, upper, width) -> np.ndarray:
     return at_split / np.maximum(np.minimum(*counts), 1)
 
 
-def parallel_layers(neighbourhoods, normals, upper, max_angle: float) -> np.ndarray:
-    """(n,) bool: whether the two groups ``upper`` (n, k) of each neighbourhood (n, k, 3) are
-    two sheets, each group's own plane within ``max_angle`` degrees of the neighbourhood's
-    (``normals`` (n, 3)), not the two faces of a crease, whose offsets split as cleanly where
-    the noise is low: an open box 40 × 40 × 60 mm, 8k points at σ 0.2 mm (a sixth of the
-    spacing), had 3,400 points called layered and 1,070 in no edge, 4–9 mm from its edges;
-    the atlas left them to no chart and its mesh had 20–24 holes there."""
-    _, normal_up, _, _ = plane_fits(neighbourhoods, upper.astype(float))
-    _, normal_low, _, _ = plane_fits(neighbourhoods, (~upper).astype(float))
-    parallel = np.minimum(np.abs(np.einsum("ni,ni->n", normal_up, normals)),
-                          np.abs(np.einsum("ni,ni->n", normal_low, normals)))
-    sizes = upper.sum(axis=1)  # a plane needs three points: one or two apart are outliers
-    return (parallel >= np.cos(np.radians(max_angle))) & (np.minimum(
-        sizes, upper.shape[1] - sizes) >= 3)
-
-
 class SheetGraph(BaseEstimator):
     """kNN graph of a surface cloud with the edges between different sheets removed.
 
@@ -166,9 +150,7 @@ class SheetGraph(BaseEstimator):
         threshold, ratio, upper, width = otsu_layers(offsets)
         # One neighbourhood's ratio is noisy (one layer of 40 points: 2.4–3.5 in 90 % of
         # draws); layers are spatially coherent, so the ratio is averaged over the neighbourhood.
-        # Two sheets, not the two faces of a crease (`parallel_layers`).
-        sheets = np.where(self._parallel(neighbourhoods, normals, upper, ratio), ratio, 0.0)
-        core = sheets[indices].mean(axis=1) > self.layer_ratio
+        core = ratio[indices].mean(axis=1) > self.layer_ratio
         seen_wide = self._wide_layers(points, n_layer)
         if (seen_wide & ~core).any():
             # two layers only a wider neighbourhood sees, split along its normal where the
@@ -243,15 +225,6 @@ class SheetGraph(BaseEstimator):
         self.kept_share_ = float(self.graph_.nnz / max(1, knn.maximum(knn.T).nnz))
         return self
 
-    def _parallel(self, neighbourhoods, normals, upper, ratio) -> np.ndarray:
-        """(n,) bool `parallel_layers`, asked only of the neighbourhoods whose Otsu ``ratio``
-        (n,) is above one layer's (`_WIDE_MEAN`): the others are one sheet either way."""
-        parallel = np.ones(len(ratio), bool)
-        asked = np.flatnonzero(ratio > _WIDE_MEAN)
-        parallel[asked] = parallel_layers(neighbourhoods[asked], normals[asked], upper[asked],
-                                          self.max_angle)
-        return parallel
-
     def _wide_layers(self, points: np.ndarray, n_layer: int) -> np.ndarray:
         """(n,) bool: points whose ``n_wide`` nearest points hold two layers (`otsu_layers`
         averaged over the neighbourhood, as for ``n_layer``, with a `trough` between them).
@@ -293,9 +266,14 @@ class SheetGraph(BaseEstimator):
             _, normals, _, _ = plane_fits(neighbourhoods)
             offsets = np.einsum("nki,ni->nk", neighbourhoods - points[at, None, :], normals)
             threshold, ratio, upper, width = otsu_layers(offsets)
+            # two sheets, not the two faces of an edge: each layer's own plane is parallel to
+            # both
+            _, normal_up, _, _ = plane_fits(neighbourhoods, upper.astype(float))
+            _, normal_low, _, _ = plane_fits(neighbourhoods, (~upper).astype(float))
+            parallel = np.minimum(np.abs(np.einsum("ni,ni->n", normal_up, normals)),
+                                  np.abs(np.einsum("ni,ni->n", normal_low, normals)))
             ratios, troughs = np.zeros(n), np.zeros(n)
-            ratios[at] = np.where(parallel_layers(neighbourhoods, normals, upper,
-                                                  self.max_angle), ratio, 0.0)
+            ratios[at] = np.where(parallel >= np.cos(np.radians(self.max_angle)), ratio, 0.0)
             averaged = np.where(asked, ratios[near].mean(axis=1), 0.0)
             layers = averaged > self.layer_ratio
             if step:

@@ -178,19 +178,3 @@ def test_a_slab_s_faces_stay_joined_where_a_neighbourhood_holds_one_layer():
     faces = np.abs(clean[:, 2]) > 2.99  # not the rim, which joins the faces
     side = (clean[faces, 2] > 0).astype(int)
     assert cross_share(graph.graph_[faces][:, faces], side) == 0  # the faces stay apart
-
-
-def test_the_faces_of_a_crease_are_not_two_layers():
-    """An open box at low noise (σ a sixth of the spacing): near its edges a neighbourhood's
-    offsets split cleanly into its two faces, which are not two sheets (not parallel)."""
-    rng = np.random.default_rng(0)
-    u, v = rng.uniform(-20, 20, (2, 8000))
-    face = rng.integers(0, 5, 8000)  # four sides 40 x 40 (the box 40 mm tall here) and a top
-    points = np.select([(face == k)[:, None] for k in range(5)], [
-        np.column_stack([u, np.full(8000, -20.0), v]), np.column_stack([u, np.full(8000, 20.0), v]),
-        np.column_stack([np.full(8000, -20.0), u, v]), np.column_stack([np.full(8000, 20.0), u, v]),
-        np.column_stack([u, v, np.full(8000, 20.0)])])
-    points += rng.normal(0, 0.2, points.shape)
-    graph = SheetGraph().fit(points)
-    assert graph.layered_.sum() == 0
-    assert graph.n_components_ == 1  # every point joined (it left 1,000 alone)

@@ -47,7 +47,9 @@ def parse_options(url: str, **overrides) -> dict:
     parts = urllib.parse.urlsplit(url)
     if parts.scheme != "sim" or parts.netloc not in ("camera", ""):
         raise InvalidDeviceURL(f"not a simulated camera URL: {url!r}")
-    given = {k: v[-1] for k, v in urllib.parse.parse_qs(parts.query).items()}
+    # blank values kept: an empty ``object=`` is an error, not the default object
+    given = {k: v[-1] for k, v in urllib.parse.parse_qs(parts.query,
+                                                         keep_blank_values=True).items()}
     given.update({k: v for k, v in overrides.items() if v is not None})  # None: default
     unknown = sorted(set(given) - set(OPTIONS))
     if unknown:

@@ -91,6 +91,9 @@ def load_object(name_or_path: str | Path | None = None) -> trimesh.Trimesh:
     ``torus``, ``figurine``, ``hook``, ``sheets``, or of `UNTUNED`: ``chair``, ``knot``) or
     any mesh file trimesh reads
     (units: mm), stood on the plate. Raises `ObjectError` with a one-line cause."""
+    if name_or_path is not None and not str(name_or_path).strip():
+        raise ObjectError(f"object {str(name_or_path)!r}: an empty name (built-in objects: "
+                          f"{', '.join(BUILT_IN)}; or a mesh file)")
     name = str(name_or_path or DEFAULT_OBJECT)
     if name in BUILT_IN:
         return stand_on_plate(BUILT_IN[name]())

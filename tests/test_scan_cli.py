@@ -99,6 +99,7 @@ def test_capture_only_scan_shows_progress(tmp_path, capsys):
         (["scan", "--camera", "oak://", "--object", "vase"], "--object needs the simulated"),
         (["scan", "--object", "no-such-object", "--no-reconstruction"],
          "object 'no-such-object': no such file"),
+        (["scan", "--object", "", "--no-reconstruction"], "object '': an empty name"),
         (["replay", "missing.mcap"], "missing.mcap: no such recording"),
         (["scan", "--camera", "sim://camera", "--turntable", "sim://turntable",
           "--calibration", "nowhere.json"], "cannot read calibration nowhere.json"),

@@ -331,11 +331,9 @@ class ScanRunner(RunLifecycle):
         n_points, limits = self._process(combined, measured)
         if n_points == 0 and not self._said_empty:  # once: the camera sees nothing to scan
             self._said_empty = True
-            volume = self.plan.volume
-            log.warning("view %d/%d: no points in the working volume (radius %g mm, %g-%g mm "
-                        "above the plate): is the object on the plate and inside it?",
-                        index + 1, self.plan.n_views, volume.radius_mm, volume.z_min_mm,
-                        volume.z_max_mm)
+            log.warning("view %d/%d: no points in the working volume (%s): is the object on "
+                        "the plate and inside it?", index + 1, self.plan.n_views,
+                        self.plan.volume.describe())
         self._emit(ProgressDocument, views_done=self._views_done, views_total=self.plan.n_views,
                    view_points=n_points, view_limits=limits,
                    cloud_points=len(self.engine.cloud) if self.engine else 0,
@@ -352,13 +350,11 @@ class ScanRunner(RunLifecycle):
             return
         mesh = self.engine.finish()
         if mesh is None:
-            volume = self.plan.volume
             seen = len(self.engine.cloud.points(self.engine.params.min_views))
             raise CaptureError(
-                f"no mesh: {seen} points in the working volume (radius {volume.radius_mm:g} mm, "
-                f"{volume.z_min_mm:g}-{volume.z_max_mm:g} mm above the plate) were seen in "
-                f"{self.engine.params.min_views} views or more: is the object on the plate and "
-                f"inside it?")
+                f"no mesh: {seen} points in the working volume ({self.plan.volume.describe()}) "
+                f"were seen in {self.engine.params.min_views} views or more: is the object on "
+                f"the plate and inside it?")
         self.outputs.write_mesh(mesh)
         self.outputs.write_cloud(self.engine.fitted_points)
         self.outputs.write_engine(self.engine)

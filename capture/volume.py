@@ -11,3 +11,8 @@ class Cylinder(NamedTuple):
     radius_mm: float
     z_min_mm: float
     z_max_mm: float
+
+    def describe(self) -> str:
+        """In words, for messages: "radius 110 mm, 3-250 mm above the plate"."""
+        return (f"radius {self.radius_mm:g} mm, {self.z_min_mm:g}-{self.z_max_mm:g} mm above "
+                f"the plate")

@@ -7,6 +7,7 @@ import io
 import json
 import os
 import tempfile
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -153,10 +154,10 @@ def read_state(path: str | os.PathLike) -> tuple[dict, dict[str, np.ndarray]]:
     path = Path(path)
     if not path.is_file():
         raise InvalidInputError(f"{path}: no such reconstruction state file")
-    with open(path, "rb") as file:
-        if file.read(4) != b"PK\x03\x04":  # every .npz is a zip archive
-            raise InvalidInputError(f"{path}: not a ScanStation reconstruction state (not an "
-                                    f".npz archive: `reconstruct --save` writes one)")
+    if not zipfile.is_zipfile(path):  # every .npz is one
+        raise InvalidInputError(f"{path}: not a ScanStation reconstruction state (not an "
+                                f".npz archive, or a truncated one: `reconstruct --save` "
+                                f"writes one)")
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {name: data[name] for name in data.files}

@@ -16,6 +16,7 @@ from joblib import effective_n_jobs
 from reconstruct.atlas import AtlasReconstructor
 from reconstruct.chart_fit import fit_charts
 from reconstruct.chart_sides import THIN_SHARE, ChartSides, behind_share, thin_charts
+from reconstruct.embedding import SurfaceEmbedding
 from reconstruct.errors import (
     FitError,
     InvalidInputError,
@@ -190,6 +191,42 @@ def test_implicit_mesh_closes_oriented_samples_of_a_sphere():
     mesh = implicit_mesh(sphere.vertices, sphere.vertex_normals, voxel=0.08)
     assert mesh.is_watertight and mesh.euler_number == 2 and mesh.volume > 0
     assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 1).max() < 0.03
+
+
+def embedded_sizes(monkeypatch) -> list[int]:
+    """The number of points of every `SurfaceEmbedding` fitted from now on."""
+    sizes = []
+    fit = SurfaceEmbedding.fit
+
+    def spied(embedding, points, y=None):
+        sizes.append(len(points))
+        return fit(embedding, points, y)
+
+    monkeypatch.setattr(SurfaceEmbedding, "fit", spied)
+    return sizes
+
+
+def test_a_dense_closed_cloud_is_not_embedded_whole_to_learn_it_needs_an_atlas(monkeypatch):
+    # a 300,000-point mug spent 70 of its 87 s embedding every point, only to find that one
+    # chart could not hold it; a random GLANCE_POINTS of them tell as much
+    monkeypatch.setattr("reconstruct.pipeline.GLANCE_POINTS", 600)
+    sizes = embedded_sizes(monkeypatch)
+    model = SurfaceReconstructor(max_layers=1, max_neurons=8).fit(sphere_cloud(1500, 0.01))
+    assert model.atlas_reason_.startswith(
+        "the embedding of 600 of its 1500 points has residual variance")
+    assert sizes[0] == 600 and 1500 not in sizes  # then only the charts' own embeddings
+    assert model.mesh_.is_watertight and model.mesh_.euler_number == 2
+
+
+def test_a_dense_disc_is_embedded_whole_after_its_glance(monkeypatch):
+    points = holed_patch(1500, hole=0.0)
+    params = dict(max_layers=1, max_neurons=8, random_state=0)
+    alone = SurfaceReconstructor(**params).fit(points)
+    monkeypatch.setattr("reconstruct.pipeline.GLANCE_POINTS", 600)
+    sizes = embedded_sizes(monkeypatch)
+    glanced = SurfaceReconstructor(**params).fit(points)
+    assert sizes == [600, 1500] and not hasattr(glanced, "atlas_")
+    np.testing.assert_array_equal(alone.mesh_.vertices, glanced.mesh_.vertices)
 
 
 def test_remesh_before_fit_is_refused():

@@ -52,7 +52,7 @@ from .chart_fit import (
     warm_up,
 )
 from .chart_parts import ChartPart, chart_part
-from .chart_sides import ChartSides, UnchartedTracker, uncharted_points
+from .chart_sides import ChartSides, UnchartedTracker, two_layer_charts, uncharted_points
 from .charts import ChartDecomposition
 from .closed_grid import ClosedSDF
 from .errors import (
@@ -348,9 +348,12 @@ class AtlasReconstructor(BaseEstimator):
         unturned = [part.normals for part in parts]
         chart_normals = [s * n for n, s in zip(unturned, self.signs_, strict=True)]
         if decide or not hasattr(self, "shells_"):
+            two_layer = (None if self.closed is False else two_layer_charts(
+                [self._chart_mesh(i) for i in range(len(parts))], self.chart_points_,
+                self.points_, voxel))
             sides = ChartSides(band=self.band, closed=self.closed).fit(
                 chart_samples_, chart_normals, self.points_, self.decomposition_.spacing_,
-                voxel, self.chart_points_)
+                voxel, self.chart_points_, two_layer)
             self.closed_, self.seal_, self.votes_ = sides.closed_, sides.seal_, sides.votes_
             self.shells_, self.thin_ = sides.shells_, sides.thin_
             self.signs_ = self.signs_ * sides.turns_

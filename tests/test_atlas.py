@@ -15,7 +15,13 @@ from joblib import effective_n_jobs
 
 from reconstruct.atlas import AtlasReconstructor
 from reconstruct.chart_fit import fit_charts
-from reconstruct.chart_sides import THIN_SHARE, ChartSides, behind_share, thin_charts
+from reconstruct.chart_sides import (
+    THIN_SHARE,
+    ChartSides,
+    behind_share,
+    thin_charts,
+    two_layer_charts,
+)
 from reconstruct.embedding import SurfaceEmbedding
 from reconstruct.errors import (
     FitError,
@@ -629,6 +635,46 @@ def test_a_hole_in_the_charts_where_data_lies_leaves_the_charts_one_sided():
                                      voxel=0.4, chart_points=chart_points)
     assert sides.closed_ and not sides.shells_.any()
     assert (sides.votes_ > 0.9).all()
+
+
+def test_a_chart_fitted_between_the_two_faces_of_a_thin_part_is_found():
+    # two plates 1.5 mm thick at σ 0.3 mm, 20k points (spacing 1.8 mm): each plate was one
+    # chart meshed midway between its faces, and the closed join filled the gap between the
+    # plates (0 % of its mid-plane open at every σ from 0.1 to 0.4 % of the diagonal)
+    rng = np.random.default_rng(0)
+    u, v = np.meshgrid(np.arange(-20.0, 20.1), np.arange(-20.0, 20.1), indexing="ij")
+    cell = np.arange(40 * 41).reshape(40, 41)[:, :40].ravel()  # each cell's lower corner
+    sheet = trimesh.Trimesh(np.c_[u.ravel(), v.ravel(), np.zeros(u.size)], np.r_[
+        np.c_[cell, cell + 41, cell + 42], np.c_[cell, cell + 42, cell + 1]])
+    xy = rng.uniform(-19, 19, (3000, 2))
+    faces = np.c_[xy, rng.choice([-0.75, 0.75], len(xy)) + rng.normal(0, 0.15, len(xy))]
+    one = np.c_[xy, rng.normal(0, 0.6, len(xy))]  # one layer, as widely spread
+    wavy = np.c_[xy, 0.75 * np.sin(xy[:, 0] / 3)]  # one layer, not flat: the mesh is flat
+    found = two_layer_charts([sheet] * 3, [np.arange(3000) + k * 3000 for k in range(3)],
+                             np.concatenate([faces, one, wavy]), voxel=0.9)
+    np.testing.assert_array_equal(found, [True, False, False])
+
+
+def test_a_closed_clouds_two_layer_chart_is_joined_as_a_thin_part():
+    rng = np.random.default_rng(4)
+    box = trimesh.creation.box((12.0, 40.0, 24.0))
+    points, faces = trimesh.sample.sample_surface(box, 20000, seed=4)
+    points = points + rng.normal(0, 0.05, points.shape)
+    normals = box.face_normals[faces]
+    side = np.round(normals).astype(int) @ [1, 3, 9]
+    chart_points = [np.flatnonzero(side == k) for k in np.unique(side)]
+    two_layer = np.zeros(len(chart_points), bool)
+    two_layer[0] = True
+    sides = ChartSides(band=3.0).fit([points[m] for m in chart_points],
+                                     [normals[m] for m in chart_points], points, spacing=0.4,
+                                     voxel=0.4, chart_points=chart_points, two_layer=two_layer)
+    assert sides.closed_
+    np.testing.assert_array_equal(sides.thin_, two_layer)
+    np.testing.assert_array_equal(sides.shells_, two_layer)
+    unsaid = ChartSides(band=3.0).fit([points[m] for m in chart_points],
+                                      [normals[m] for m in chart_points], points, spacing=0.4,
+                                      voxel=0.4, chart_points=chart_points)
+    assert not unsaid.thin_.any() and not unsaid.shells_.any()
 
 
 def test_a_chart_with_too_few_interpolants_at_a_saved_depth_is_kept(monkeypatch):

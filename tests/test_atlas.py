@@ -616,23 +616,33 @@ def test_only_data_straight_behind_a_chart_counts_towards_a_thin_part():
     assert share[0] < THIN_SHARE / 4
 
 
+def box_faces():
+    """A closed 12 × 40 × 24 box's cloud (20k, σ 0.05): points (n, 3), their faces' normals
+    (n, 3) and a code of the face each lies on (n,) (9: the top)."""
+    rng = np.random.default_rng(4)
+    box = trimesh.creation.box((12.0, 40.0, 24.0))
+    points, faces = trimesh.sample.sample_surface(box, 20000, seed=4)
+    points = points + rng.normal(0, 0.05, points.shape)
+    normals = box.face_normals[faces]
+    return points, normals, np.round(normals).astype(int) @ [1, 3, 9]
+
+
+def box_sides(points, normals, chart_points, two_layer=None) -> ChartSides:
+    """`ChartSides` of the box's charts (``chart_points``) at spacing and voxel 0.4."""
+    return ChartSides(band=3.0).fit([points[m] for m in chart_points],
+                                    [normals[m] for m in chart_points], points, spacing=0.4,
+                                    voxel=0.4, chart_points=chart_points, two_layer=two_layer)
+
+
 def test_a_hole_in_the_charts_where_data_lies_leaves_the_charts_one_sided():
     # a closed box charted on its sides and bottom, its top left out of the charts but not of
     # the data (as the sheet graph leaves a junction out): the votes saw the inside through
     # the hole and took every chart for a sheet seen from both sides (bench.atlas sheets 20k:
     # the foot's charts were joined as shells whose inner faces voted the foot's inside
     # outside, a hollow foot under a bridge across the slot's floor)
-    rng = np.random.default_rng(4)
-    box = trimesh.creation.box((12.0, 40.0, 24.0))
-    points, faces = trimesh.sample.sample_surface(box, 20000, seed=4)
-    points = points + rng.normal(0, 0.05, points.shape)
-    normals = box.face_normals[faces]
-    side = np.round(normals).astype(int) @ [1, 3, 9]
-    top = side == 9
-    chart_points = [np.flatnonzero(side == k) for k in np.unique(side[~top])]
-    sides = ChartSides(band=3.0).fit([points[m] for m in chart_points],
-                                     [normals[m] for m in chart_points], points, spacing=0.4,
-                                     voxel=0.4, chart_points=chart_points)
+    points, normals, side = box_faces()
+    chart_points = [np.flatnonzero(side == k) for k in np.unique(side[side != 9])]
+    sides = box_sides(points, normals, chart_points)
     assert sides.closed_ and not sides.shells_.any()
     assert (sides.votes_ > 0.9).all()
 
@@ -656,24 +666,15 @@ def test_a_chart_fitted_between_the_two_faces_of_a_thin_part_is_found():
 
 
 def test_a_closed_clouds_two_layer_chart_is_joined_as_a_thin_part():
-    rng = np.random.default_rng(4)
-    box = trimesh.creation.box((12.0, 40.0, 24.0))
-    points, faces = trimesh.sample.sample_surface(box, 20000, seed=4)
-    points = points + rng.normal(0, 0.05, points.shape)
-    normals = box.face_normals[faces]
-    side = np.round(normals).astype(int) @ [1, 3, 9]
+    points, normals, side = box_faces()
     chart_points = [np.flatnonzero(side == k) for k in np.unique(side)]
     two_layer = np.zeros(len(chart_points), bool)
     two_layer[0] = True
-    sides = ChartSides(band=3.0).fit([points[m] for m in chart_points],
-                                     [normals[m] for m in chart_points], points, spacing=0.4,
-                                     voxel=0.4, chart_points=chart_points, two_layer=two_layer)
+    sides = box_sides(points, normals, chart_points, two_layer)
     assert sides.closed_
     np.testing.assert_array_equal(sides.thin_, two_layer)
     np.testing.assert_array_equal(sides.shells_, two_layer)
-    unsaid = ChartSides(band=3.0).fit([points[m] for m in chart_points],
-                                      [normals[m] for m in chart_points], points, spacing=0.4,
-                                      voxel=0.4, chart_points=chart_points)
+    unsaid = box_sides(points, normals, chart_points)
     assert not unsaid.thin_.any() and not unsaid.shells_.any()
 
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .faithfulness import signed_residuals
 from .join import ExteriorProbe, exterior_votes
 from .sdf_grid import QUERY_THREADS
 
@@ -175,10 +176,7 @@ def two_layer_charts(meshes, chart_points, points, voxel: float) -> np.ndarray:
         own = points[np.asarray(members)]
         if len(own) <= LAYER_NEIGHBOURS or len(mesh.vertices) == 0:
             continue
-        vertices = np.asarray(mesh.vertices)
-        nearest = cKDTree(vertices).query(own, workers=QUERY_THREADS)[1]
-        signed = np.einsum("ij,ij->i", own - vertices[nearest],
-                           np.asarray(mesh.vertex_normals)[nearest])
+        signed = signed_residuals(mesh, own, QUERY_THREADS)
         near = signed[cKDTree(own).query(own, k=LAYER_NEIGHBOURS, workers=QUERY_THREADS)[1]]
         centred = near - near.mean(axis=1, keepdims=True)
         variance = np.mean(centred**2, axis=1)

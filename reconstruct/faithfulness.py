@@ -97,10 +97,17 @@ def residual_kurtosis(mesh, points) -> float:
     points = _evenly(np.asarray(points, dtype=np.float64))
     if len(points) < 4 or len(mesh.vertices) == 0:
         return 3.0
-    nearest = cKDTree(mesh.vertices).query(points)[1]
-    signed = np.einsum("ij,ij->i", points - mesh.vertices[nearest],
-                       mesh.vertex_normals[nearest])
+    signed = signed_residuals(mesh, points)
     return float(kurtosis(signed, fisher=False)) if np.ptp(signed) > 0 else 3.0
+
+
+def signed_residuals(mesh, points, workers: int = 1) -> np.ndarray:
+    """(n,) signed distances of ``points`` (n, 3) from ``mesh`` along the normal at its nearest
+    vertex (positive in front)."""
+    vertices = np.asarray(mesh.vertices)
+    nearest = cKDTree(vertices).query(points, workers=workers)[1]
+    return np.einsum("ij,ij->i", points - vertices[nearest],
+                     np.asarray(mesh.vertex_normals)[nearest])
 
 
 def explained_distance(points, factor: float = NOISE_FACTOR, k: int | None = None) -> float:

@@ -78,6 +78,16 @@ ATLAS_MODES = ("auto", "never", "always")
 #: of 20,000. A 300,000-point mug took 87 s, 70 of them embedding the whole cloud.
 GLANCE_POINTS = 20000
 GLANCE_MARGIN = 3.0
+#: A denser cloud is fitted on a random this many of its points (``max_points``): its net trains
+#: on at most 18,000 of them (`AdaptiveMLP`: three bags of 6,000), and embedding every point
+#: costs as its graph grows (a 300,000-point terrain: 80 s, 70 of them embedding; 2.3 GB).
+#: bench.quality's shapes at 100,000 points, σ 0.5 %, seeds 0 / 1, Chamfer-L1 fitted on all /
+#: on 40,000: s_curve 0.00155 / 0.00151, 0.00139 / 0.00130; torus_quarter 0.00062 / 0.00077;
+#: torus_half 0.00178 / 0.00159, 0.00168 / 0.00206; sparse_cone 0.00035 / 0.00031;
+#: sphere_cap 0.00072 / 0.00071; saddle 0.00074 / 0.00097; terrain 0.00065 / 0.00069, F
+#: 0.9999-1.0 all; 17-35 s against 10-17 s. On 20,000 they were worse (torus_quarter 0.00088,
+#: saddle 0.00095, s_curve 0.00189: the net's bags overlap).
+MAX_POINTS = 40_000
 #: From this many points, an ``atlas="auto"`` fit starts chart workers on a spare core as it
 #: begins (`AtlasReconstructor.warm`: they import torch while it embeds), then decomposes the
 #: cloud for an atlas there while it searches one chart's net (`AtlasReconstructor.start`), in
@@ -93,7 +103,7 @@ SPECULATE_FROM = 10000
 FINAL_WEIGHT_DECAY = 0.01
 _MESH_PARAMS = ("lam", "depth", "n_corners", "boundary", "grid_spacing", "variance", "extend")
 #: Training-only parameters: not saved (a loaded reconstruction re-meshes, it does not train).
-_TRAINING_PARAMS = ("mlp", "fine_tune", "warm_tolerance", "atlas")
+_TRAINING_PARAMS = ("mlp", "fine_tune", "warm_tolerance", "atlas", "max_points")
 
 
 def _check_known(params: dict) -> None:
@@ -157,6 +167,9 @@ class SurfaceReconstructor(BaseEstimator):
         (`join.faces_seen_side`, found once per map; a network's map leaves the side free);
         None: as the map gives it (an atlas's charts and a scan's sectors, whose owners orient
         them).
+    max_points : a denser cloud is fitted on a random this many of its points (`MAX_POINTS`;
+        None: on all), and its mesh has about as many vertices (a smaller ``grid_spacing``
+        re-meshes it finer).
 
     Fitted attributes: ``embedding_`` (m, 2), ``points_`` (m, 3) the points it was fitted to,
     ``mlp_`` (`AdaptiveMLP`; not after `load`), ``embedding_method_``, ``n_neighbors_``,
@@ -195,6 +208,7 @@ class SurfaceReconstructor(BaseEstimator):
         warm_tolerance: float | None = None,
         atlas: str = "auto",
         up: tuple[float, float, float] | None = (0.0, 0.0, 1.0),
+        max_points: int | None = MAX_POINTS,
     ):
         self.lam = lam
         self.depth = depth
@@ -215,6 +229,7 @@ class SurfaceReconstructor(BaseEstimator):
         self.warm_tolerance = warm_tolerance
         self.atlas = atlas
         self.up = up
+        self.max_points = max_points
 
     def fit(self, points, warm_start: SurfaceReconstructor | None = None,
             embedded: Embedded | None = None) -> SurfaceReconstructor:
@@ -228,7 +243,7 @@ class SurfaceReconstructor(BaseEstimator):
             boundary samples are taken instead of computed (the same mesh)."""
         self._check_mesh_params()
         self._check_fit_params()
-        points = np.array(check_points(points))  # its own: ``points_`` may be this array
+        points = self._drawn(np.array(check_points(points)))  # own: ``points_`` may be it
         if embedded is not None:
             self._check_embedded(embedded, points, warm_start)
         for name in ("atlas_", "atlas_reason_"):
@@ -261,12 +276,25 @@ class SurfaceReconstructor(BaseEstimator):
     def embed(self, points, depths=()) -> Embedded:
         """The start of `fit` that needs no network: embed ``points`` (n, 3) and sample their
         boundary at each of ``depths``, for ``fit(points, embedded=...)``."""
-        points = np.array(check_points(points))
+        points = self._drawn(np.array(check_points(points)))
         embedding = self._embedding_estimator(self.n_neighbors).fit(points)
         sampler = copy.copy(self)  # samples with this one's parameters, into a cache of its own
         sampler.__dict__.update(embedding_=embedding.embedding_, _boundary_cache={})
         sampler.sample_boundaries(depths)
         return Embedded(points, embedding, sampler._boundary_cache, self._embedding_key())
+
+    def _drawn(self, points: np.ndarray) -> np.ndarray:
+        """The points (m, 3) fitted: all, or a random ``max_points`` of denser ``points``."""
+        limit = self.max_points
+        if limit is not None and not (isinstance(limit, (int, np.integer)) and limit >= 100):
+            raise InvalidInputError(f"max_points must be a whole number >= 100 or None, got "
+                                    f"{limit!r}")
+        if limit is None or len(points) <= limit:
+            return points
+        keep = np.random.default_rng(self.random_state).choice(
+            len(points), self.max_points, replace=False)
+        log.info("fitting %d of the %d points (max_points)", self.max_points, len(points))
+        return points[np.sort(keep)]
 
     def _embedding_key(self) -> tuple:
         return (self.embedding, self.n_neighbors, self.random_state, self.boundary,

@@ -44,6 +44,19 @@ def test_extend_option_rejects_a_bad_value(tmp_path, capsys):
     assert "expected auto, border or a number >= 0, got 'far'" in capsys.readouterr().err
 
 
+def test_max_points_option(tmp_path, capsys):
+    cloud = _plane(tmp_path / "plane.xyz")
+    out = tmp_path / "mesh.ply"
+    fast = ["--max-layers", "1", "--max-neurons", "6"]
+    assert main(["reconstruct", str(cloud), "-o", str(out), *fast, "--max-points", "300"]) == 0
+    assert "fitting 300 of the" in capsys.readouterr().err
+    for bad in ("few", "50"):
+        with pytest.raises(SystemExit) as exit_:
+            main(["reconstruct", str(cloud), "-o", str(out), "--max-points", bad])
+        assert exit_.value.code == 2
+        assert f"expected all or a whole number >= 100, got '{bad}'" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     ("content", "message"),
     [

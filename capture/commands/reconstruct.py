@@ -82,8 +82,28 @@ def add_parser(subparsers) -> None:
     parser.add_argument("input", help="point cloud file")
     parser.add_argument("-o", "--output", required=True, help="mesh file; format by extension")
     add_reconstruction_options(parser)
+    from reconstruct.pipeline import MAX_POINTS
+
+    parser.add_argument(
+        "--max-points", type=_max_points, default=MAX_POINTS, metavar="N|all",
+        help=f"fit one chart on a random N of a denser cloud's points (default {MAX_POINTS}; "
+        "its mesh has about as many vertices), or on all")
     parser.add_argument("--save", metavar="STATE", help="also save the state for `remesh`")
     parser.set_defaults(run=run)
+
+
+def _max_points(text: str):
+    if text == "all":
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 100:
+        import argparse
+
+        raise argparse.ArgumentTypeError(f"expected all or a whole number >= 100, got {text!r}")
+    return value
 
 
 def run(args) -> int:
@@ -92,7 +112,7 @@ def run(args) -> int:
     check_mesh_path(args.output)  # fail before the long work, not after
     points = read_points(args.input)
     log.info("read %d points from %s", len(points), args.input)
-    model = reconstructor_from_args(args).fit(points)
+    model = reconstructor_from_args(args).set_params(max_points=args.max_points).fit(points)
     write_mesh(model.mesh_, args.output)
     log.info(
         "wrote %s (%d vertices, %d faces)",

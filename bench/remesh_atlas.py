@@ -3,15 +3,15 @@ on the same cloud (issue 13: a 50k-vertex atlas mesh re-meshes in ≤ 300 ms).
 
     python -m bench.remesh_atlas [--objects torus mug ...] [--points 22000] [--voxel 0.5]
 
-For each awkward object (default all five, about 8 minutes): fits `AtlasReconstructor` (σ 0.5 %
-of the diagonal), states the mesh's vertex count, then re-meshes it through the charts' ONNX
-maps with several λ and a depth change and prints each re-mesh's time (wall, and CPU time of
-this process: the machine may be shared), split into the charts' re-meshing (with how many
-charts it meshed) and the join (wall), with how many join samples moved and how many grid nodes
-were re-evaluated; then the median re-mesh time against the fit and against Poisson, how many
-are within the target and the slowest; then the same after a save → load in this process (a
-loaded closed atlas evaluates the join's grid afresh the first time its samples move). Last,
-one summary row per object and which meet the target.
+For each awkward object and the open relief (default all six, about 9 minutes): fits
+`AtlasReconstructor` (σ 0.5 % of the diagonal, the relief 1 %), states the mesh's vertex count,
+then re-meshes it through the charts' ONNX maps with several λ and a depth change and prints
+each re-mesh's time (wall, and CPU time of this process: the machine may be shared), split into
+the charts' re-meshing (with how many charts it meshed) and the join (wall), with how many join
+samples moved and how many grid nodes were re-evaluated; then the median re-mesh time against
+the fit and against Poisson, how many are within the target and the slowest; then the same
+after a save → load in this process (a loaded closed atlas evaluates the join's grid afresh the
+first time its samples move). Last, one summary row per object and which meet the target.
 """
 
 from __future__ import annotations
@@ -33,12 +33,15 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from bench.baselines import open3d_available, poisson  # noqa: E402
 from reconstruct.atlas import AtlasReconstructor  # noqa: E402
 from reconstruct.errors import ReconstructionWarning  # noqa: E402
-from sim.awkward_objects import AWKWARD, sample_cloud  # noqa: E402
+from sim.awkward_objects import AWKWARD, relief, sample_cloud  # noqa: E402
 
 #: The objects re-meshed by default: every awkward object, not only the torus, whose charts
 #: meet in overlap rings (the mug's, figurine's, hook's and sheets' charts own parts of their
-#: outlines, so a new λ moves hundreds to thousands of join samples).
-OBJECTS = ["torus", "mug", "figurine", "hook", "sheets"]
+#: outlines, so a new λ moves hundreds to thousands of join samples), and an open surface, the
+#: rough relief with holes of bench.atlas (σ 1 %), whose border is its charts' outlines.
+OBJECTS = ["torus", "mug", "figurine", "hook", "sheets", "relief"]
+SHAPES = {**AWKWARD, "relief": relief}
+NOISE = {"relief": 0.01}
 #: The re-meshes timed: new λ values, a new depth, and back to the fitted parameters.
 CHANGES = [{"lam": 0.7}, {"lam": 1.5}, {"lam": 2.0}, {"lam": 3.0}, {"depth": 3},
            {"lam": 1.0, "depth": 2}]
@@ -72,13 +75,14 @@ def print_rows(rows: list[dict]) -> None:
 def run_object(name: str, args) -> dict:
     """Fit, time the re-meshes, save, load and time again one object; print its tables and
     return its summary row."""
-    points = sample_cloud(AWKWARD[name](), args.points, 0.005, random_state=args.seed)
+    noise = NOISE.get(name, 0.005)
+    points = sample_cloud(SHAPES[name](), args.points, noise, random_state=args.seed)
     started = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ReconstructionWarning)
         atlas = AtlasReconstructor(voxel=args.voxel, random_state=args.seed).fit(points)
     fit_seconds = time.perf_counter() - started
-    print(f"\n{name}, {args.points} points (σ 0.5 %), {len(atlas.charts_)} charts: "
+    print(f"\n{name}, {args.points} points (σ {noise:.1%}), {len(atlas.charts_)} charts: "
           f"{len(atlas.mesh_.vertices)} vertices, {len(atlas.mesh_.faces)} faces, "
           f"watertight {atlas.watertight_}, fit {fit_seconds:.1f} s\n")
     rows = [timed_remesh(atlas, change) for change in CHANGES]
@@ -122,7 +126,7 @@ def run_object(name: str, args) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--objects", nargs="+", default=OBJECTS, choices=sorted(AWKWARD))
+    parser.add_argument("--objects", nargs="+", default=OBJECTS, choices=sorted(SHAPES))
     parser.add_argument("--points", type=int, default=22000)
     parser.add_argument("--voxel", type=float, default=0.5,
                         help="join voxel in median spacings (smaller: more vertices)")

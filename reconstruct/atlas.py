@@ -80,7 +80,7 @@ from .join_alignment import steady_join
 from .mesh_edges import topology, turn_faces
 from .sdf_grid import SparseSDF
 from .sheet_graph import SheetGraph
-from .validation import check_points
+from .validation import check_max_points, check_points, random_subset
 
 log = logging.getLogger(__name__)
 
@@ -287,12 +287,11 @@ class AtlasReconstructor(BaseEstimator):
     def _charted(self, points: np.ndarray) -> np.ndarray:
         """The points (m, 3) the atlas charts: all, or a random ``max_points`` of a denser
         cloud (denser adds noise, not detail)."""
-        if len(points) <= self.max_points:
-            return points
-        keep = np.random.default_rng(self.random_state).choice(
-            len(points), self.max_points, replace=False)
-        log.info("atlas of %d of the %d points", self.max_points, len(points))
-        return points[np.sort(keep)]
+        check_max_points(self.max_points)
+        charted = random_subset(points, self.max_points, self.random_state)
+        if len(charted) < len(points):
+            log.info("atlas of %d of the %d points", len(charted), len(points))
+        return charted
 
     def _decomposition(self) -> ChartDecomposition:
         """An unfitted `ChartDecomposition` with this atlas's parameters."""

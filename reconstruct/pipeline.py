@@ -48,7 +48,7 @@ from .mlp import AdaptiveMLP
 from .outline import border_inset, border_spacing, extend_outline
 from .pipeline_state import STATE_FORMAT, reconstruction_from_state, reconstruction_state
 from .spline import BoundarySpline, SplineInput, spline_input
-from .validation import check_points
+from .validation import check_max_points, check_points, random_subset
 
 log = logging.getLogger(__name__)
 
@@ -70,17 +70,19 @@ ATLAS_RESIDUAL = 0.015
 ATLAS_MODES = ("auto", "never", "always")
 #: A denser ``atlas="auto"`` cloud is first embedded on a random this many of its points (the
 #: atlas's own ``max_points``): when their residual variance is over `GLANCE_MARGIN` times
-#: `ATLAS_RESIDUAL`, the atlas is fitted without embedding the whole cloud, whose embedding
-#: only decided that. 100,000 points at σ 0.5 %, the whole cloud's residual against three
-#: draws of 20,000: every bench.quality shape within 0.001 (all ≤ 0.0053), mug 0.353 /
+#: `ATLAS_RESIDUAL`, the atlas is fitted without embedding the cloud (its `MAX_POINTS`),
+#: whose embedding only decided that. 100,000 points at σ 0.5 %, the whole cloud's residual
+#: against three draws of 20,000: every bench.quality shape within 0.001 (all ≤ 0.0053), mug 0.353 /
 #: 0.359-0.361, chair 0.083 / 0.063-0.074, hook 0.020 / 0.018-0.021 (left to the whole
 #: cloud's, as are all near the limit); the embedding took 14-31 s of 100,000 points, 2.2-4.3 s
-#: of 20,000. A 300,000-point mug took 87 s, 70 of them embedding the whole cloud.
+#: of 20,000. A 300,000-point mug took 87 s, 70 of them embedding the whole cloud (before
+#: `MAX_POINTS`).
 GLANCE_POINTS = 20000
 GLANCE_MARGIN = 3.0
 #: A denser cloud is fitted on a random this many of its points (``max_points``): its net trains
 #: on at most 18,000 of them (`AdaptiveMLP`: three bags of 6,000), and embedding every point
-#: costs as its graph grows (a 300,000-point terrain: 80 s, 70 of them embedding; 2.3 GB).
+#: costs as its graph grows (`scanstation reconstruct` of a 300,000-point terrain: 102 s and
+#: 2.3 GB, about 70 s of it embedding; now 19 s and 0.74 GB).
 #: bench.quality's shapes at 100,000 points, σ 0.5 %, seeds 0 / 1, Chamfer-L1 fitted on all /
 #: on 40,000: s_curve 0.00155 / 0.00151, 0.00139 / 0.00130; torus_quarter 0.00062 / 0.00077;
 #: torus_half 0.00178 / 0.00159, 0.00168 / 0.00206; sparse_cone 0.00035 / 0.00031;
@@ -117,7 +119,7 @@ class Embedded(NamedTuple):
     ``fit(points, embedded=...)`` to take up: the same fit, its first steps done ahead (an atlas
     embeds its charts on an idle core while a one-chart fit searches)."""
 
-    points: np.ndarray  # (n, 3) the cloud embedded
+    points: np.ndarray  # (m, 3) the cloud embedded (at most ``max_points`` of it)
     embedding: SurfaceEmbedding  # fitted on it
     boundaries: dict  # its boundary samples at the depths asked (the fit's boundary cache)
     key: tuple  # the parameters they depend on (`SurfaceReconstructor._embedding_key`)
@@ -169,7 +171,7 @@ class SurfaceReconstructor(BaseEstimator):
         them).
     max_points : a denser cloud is fitted on a random this many of its points (`MAX_POINTS`;
         None: on all), and its mesh has about as many vertices (a smaller ``grid_spacing``
-        re-meshes it finer).
+        re-meshes it finer); ``points_`` and ``unexplained_`` are then of those.
 
     Fitted attributes: ``embedding_`` (m, 2), ``points_`` (m, 3) the points it was fitted to,
     ``mlp_`` (`AdaptiveMLP`; not after `load`), ``embedding_method_``, ``n_neighbors_``,
@@ -274,8 +276,9 @@ class SurfaceReconstructor(BaseEstimator):
             raise InvalidInputError(f"random_state (the seed) must be >= 0, got {seed}")
 
     def embed(self, points, depths=()) -> Embedded:
-        """The start of `fit` that needs no network: embed ``points`` (n, 3) and sample their
-        boundary at each of ``depths``, for ``fit(points, embedded=...)``."""
+        """The start of `fit` that needs no network: embed ``points`` (n, 3) (those `fit`
+        takes: a random ``max_points`` of a denser cloud) and sample their boundary at each of
+        ``depths``, for ``fit(points, embedded=...)``."""
         points = self._drawn(np.array(check_points(points)))
         embedding = self._embedding_estimator(self.n_neighbors).fit(points)
         sampler = copy.copy(self)  # samples with this one's parameters, into a cache of its own
@@ -285,16 +288,11 @@ class SurfaceReconstructor(BaseEstimator):
 
     def _drawn(self, points: np.ndarray) -> np.ndarray:
         """The points (m, 3) fitted: all, or a random ``max_points`` of denser ``points``."""
-        limit = self.max_points
-        if limit is not None and not (isinstance(limit, (int, np.integer)) and limit >= 100):
-            raise InvalidInputError(f"max_points must be a whole number >= 100 or None, got "
-                                    f"{limit!r}")
-        if limit is None or len(points) <= limit:
-            return points
-        keep = np.random.default_rng(self.random_state).choice(
-            len(points), self.max_points, replace=False)
-        log.info("fitting %d of the %d points (max_points)", self.max_points, len(points))
-        return points[np.sort(keep)]
+        check_max_points(self.max_points)
+        drawn = random_subset(points, self.max_points, self.random_state)
+        if len(drawn) < len(points):
+            log.info("fitting %d of the %d points (max_points)", len(drawn), len(points))
+        return drawn
 
     def _embedding_key(self) -> tuple:
         return (self.embedding, self.n_neighbors, self.random_state, self.boundary,
@@ -355,9 +353,8 @@ class SurfaceReconstructor(BaseEstimator):
         whole cloud's embedding decides)."""
         if len(points) <= GLANCE_POINTS:
             return None
-        keep = np.sort(np.random.default_rng(self.random_state).choice(
-            len(points), GLANCE_POINTS, replace=False))
-        residual = self._embedding_estimator(n_neighbors).fit(points[keep]).residual_variance_
+        glanced = random_subset(points, GLANCE_POINTS, self.random_state)
+        residual = self._embedding_estimator(n_neighbors).fit(glanced).residual_variance_
         if residual <= GLANCE_MARGIN * ATLAS_RESIDUAL:
             log.debug("%d of the %d points embed with residual variance %.3f: embedding all",
                       GLANCE_POINTS, len(points), residual)

@@ -62,3 +62,24 @@ def check_points(points, min_points: int = MIN_POINTS) -> np.ndarray:
     if singular[0] == 0 or singular[1] / singular[0] < 1e-6:
         raise DegenerateCloudError("the points are collinear: a surface needs a 2D spread")
     return array
+
+
+def check_max_points(limit) -> None:
+    """Refuse a ``max_points`` (`InvalidInputError`) that is neither None nor a whole number of
+    at least 100."""
+    if limit is not None and not (isinstance(limit, (int, np.integer))
+                                  and not isinstance(limit, bool) and limit >= 100):
+        raise InvalidInputError(f"max_points must be a whole number >= 100 or None, got "
+                                f"{limit!r}")
+
+
+def random_subset(points: np.ndarray, limit: int | None, random_state) -> np.ndarray:
+    """The rows (m, 3) of ``points`` (n, 3) a fit takes: all when ``limit`` is None or not
+    below n, else a random ``limit`` of them, in their order. Seeded by ``random_state`` when it
+    is a whole number, else by 0: the same rows at every call (a fit takes up what `embed`
+    computed of them)."""
+    if limit is None or len(points) <= limit:
+        return points
+    seed = random_state if isinstance(random_state, (int, np.integer)) else 0
+    keep = np.random.default_rng(seed).choice(len(points), int(limit), replace=False)
+    return points[np.sort(keep)]

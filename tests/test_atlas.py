@@ -235,6 +235,13 @@ def test_a_dense_disc_is_embedded_whole_after_its_glance(monkeypatch):
     np.testing.assert_array_equal(alone.mesh_.vertices, glanced.mesh_.vertices)
 
 
+@pytest.mark.parametrize("limit", [50, 2.5e4, True])
+def test_a_bad_max_points_is_refused_in_one_line(limit):
+    # None (chart every point) raised a TypeError from a comparison
+    with pytest.raises(InvalidInputError, match="max_points must be a whole number >= 100"):
+        AtlasReconstructor(max_points=limit, n_jobs=1).fit(sphere_cloud(300))
+
+
 def test_remesh_before_fit_is_refused():
     with pytest.raises(NotFittedError):
         AtlasReconstructor().remesh(lam=2.0)

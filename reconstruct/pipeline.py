@@ -35,11 +35,14 @@ from .errors import (
 )
 from .faithfulness import (
     BRIDGE_LIMIT,
+    MISSED_LIMIT,
     UNEXPLAINED_LIMIT,
     bridged_share,
     explained_distance,
+    missed_region,
     neighbour_preservation,
     unexplained_fraction,
+    unexplained_points,
 )
 from .io import one_line, read_state, write_state
 from .join import check_up, faces_seen_side
@@ -399,10 +402,12 @@ class SurfaceReconstructor(BaseEstimator):
         self.remesh()
         if explained is None:
             explained = explained_distance(fitted)
-        self.unexplained_ = unexplained_fraction(self.mesh_, assessed, threshold=explained)
+        far, measured = unexplained_points(self.mesh_, assessed, threshold=explained)
+        self.unexplained_ = len(far) / max(len(measured), 1)
+        self._missed = missed_region(far, measured)
         if warm_start is None and self.atlas == "auto":
             reason = self._atlas_reason(points, self.unexplained_, self.hidden_layers_,
-                                        self.n_neighbors_)
+                                        self.n_neighbors_, missed=self._missed)
             if reason is not None:
                 return self._fit_atlas(*reason, atlas=spare)
         self._check_faithful()
@@ -419,19 +424,24 @@ class SurfaceReconstructor(BaseEstimator):
         return self
 
     def _atlas_reason(self, points, unexplained: float, layers: tuple[int, ...], k: int,
-                      limit: float = UNEXPLAINED_LIMIT) -> tuple | None:
+                      limit: float = UNEXPLAINED_LIMIT, missed=None) -> tuple | None:
         """(points, reason, hidden layers, K) for `_fit_atlas` when ``mesh_``, one chart, is
         the wrong model of the input ``points`` (n, 3); None when it is not.
 
         It leaves more than ``limit`` of them ``unexplained``: the atlas fits them all and
-        searches its own layers (these were searched for a surface folded onto itself). Or it
-        spans holes in the data: a disc-like surface, and the atlas fits the piece the chart
+        searches its own layers (these were searched for a surface folded onto itself). Or,
+        after the final fits, it leaves one patch of them over `MISSED_LIMIT` of the cloud
+        (``missed``: `faithfulness.missed_region`), a region its boundary cut off: the same. Or
+        it spans holes in the data: a disc-like surface, and the atlas fits the piece the chart
         fitted with the chart's ``layers`` and ``k`` (same density, same K: rough 20k, 39
         charts, 1.5 s of K choices saved). Before the final fits, on the searched net's mesh,
         twice the limit counts (the final fits explain more; the holes spanned are the
         outline's, the same): rough 20k turns to an atlas 6 s sooner."""
         if unexplained > limit:
             return points, "one chart leaves too many points unexplained", None, None
+        if missed is not None and missed[0] > MISSED_LIMIT:  # (`missed_region`)
+            reason = f"one chart's mesh misses a region of the data ({_missed(missed)})"
+            return points, reason, None, None
         if bridged_share(self.mesh_, self.points_) > BRIDGE_LIMIT:
             return self.points_, "one chart's mesh spans holes in the data", layers, k
         return None
@@ -504,6 +514,10 @@ class SurfaceReconstructor(BaseEstimator):
                 "has more detail than the network holds",
                 ReconstructionWarning, stacklevel=3,
             )
+        elif self._missed[0] > MISSED_LIMIT:
+            warnings.warn(f"the mesh misses a region of the data: {_missed(self._missed)} lie "
+                          "farther than their noise allows (a boundary that cut it off, or "
+                          "detail the network cannot hold)", ReconstructionWarning, stacklevel=3)
 
     def remesh(self, **params) -> trimesh.Trimesh:
         """Re-mesh with new ``lam``, ``depth``, ``n_corners``, ``boundary`` or ``grid_spacing``
@@ -731,3 +745,9 @@ class SurfaceReconstructor(BaseEstimator):
         except Exception as exc:  # a missing array, a bad header field, a broken ONNX model
             raise InvalidInputError(
                 f"{path}: damaged reconstruction state ({one_line(exc)})") from exc
+
+
+def _missed(missed: tuple) -> str:
+    """`faithfulness.missed_region`'s (share, centre) in words."""
+    share, centre = missed
+    return f"{share:.1%} of the points, round ({', '.join(f'{c:.3g}' for c in centre)})"

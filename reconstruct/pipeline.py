@@ -42,7 +42,6 @@ from .faithfulness import (
     missed_region,
     neighbour_preservation,
     unexplained_fraction,
-    unexplained_points,
 )
 from .io import one_line, read_state, write_state
 from .join import check_up, faces_seen_side
@@ -184,7 +183,9 @@ class SurfaceReconstructor(BaseEstimator):
     neighbourhood graph, though only the largest is fitted) the mesh leaves farther than their
     noise allows and
     ``neighbour_preservation_`` of the embedding (`reconstruct.faithfulness`; a
-    `ReconstructionWarning` when the share is over 5 %).
+    `ReconstructionWarning` when the share is over 5 %), ``missed_region_`` (share, centre (3,))
+    the largest patch of unexplained points when there are 1-5 % (`faithfulness.missed_region`;
+    a warning when over 1 %: a region the mesh misses).
     ``timings_`` (seconds per stage of the last fit / remesh: embedding, search, final fits,
     export, boundary, mesh).
     When an atlas was fitted: ``atlas_`` (`AtlasReconstructor`), ``atlas_reason_`` (why), and
@@ -402,12 +403,14 @@ class SurfaceReconstructor(BaseEstimator):
         self.remesh()
         if explained is None:
             explained = explained_distance(fitted)
-        far, measured = unexplained_points(self.mesh_, assessed, threshold=explained)
-        self.unexplained_ = len(far) / max(len(measured), 1)
-        self._missed = missed_region(far, measured)
+        self.unexplained_ = unexplained_fraction(self.mesh_, assessed, threshold=explained)
+        # a region the mesh misses, under the limit: in one patch, where noise scatters them
+        self.missed_region_ = (missed_region(self.mesh_, assessed, explained)
+                               if MISSED_LIMIT < self.unexplained_ <= UNEXPLAINED_LIMIT
+                               else (0.0, np.full(3, np.nan)))
         if warm_start is None and self.atlas == "auto":
             reason = self._atlas_reason(points, self.unexplained_, self.hidden_layers_,
-                                        self.n_neighbors_, missed=self._missed)
+                                        self.n_neighbors_, missed=self.missed_region_[0])
             if reason is not None:
                 return self._fit_atlas(*reason, atlas=spare)
         self._check_faithful()
@@ -424,24 +427,25 @@ class SurfaceReconstructor(BaseEstimator):
         return self
 
     def _atlas_reason(self, points, unexplained: float, layers: tuple[int, ...], k: int,
-                      limit: float = UNEXPLAINED_LIMIT, missed=None) -> tuple | None:
+                      limit: float = UNEXPLAINED_LIMIT, missed: float = 0.0) -> tuple | None:
         """(points, reason, hidden layers, K) for `_fit_atlas` when ``mesh_``, one chart, is
         the wrong model of the input ``points`` (n, 3); None when it is not.
 
         It leaves more than ``limit`` of them ``unexplained``: the atlas fits them all and
         searches its own layers (these were searched for a surface folded onto itself). Or,
         after the final fits, it leaves one patch of them over `MISSED_LIMIT` of the cloud
-        (``missed``: `faithfulness.missed_region`), a region its boundary cut off: the same. Or
-        it spans holes in the data: a disc-like surface, and the atlas fits the piece the chart
-        fitted with the chart's ``layers`` and ``k`` (same density, same K: rough 20k, 39
-        charts, 1.5 s of K choices saved). Before the final fits, on the searched net's mesh,
-        twice the limit counts (the final fits explain more; the holes spanned are the
-        outline's, the same): rough 20k turns to an atlas 6 s sooner."""
+        (``missed``, of ``missed_region_``), a region its boundary cut off: the atlas fits them
+        all with the chart's ``layers`` and ``k``. Or it spans holes in the data: a disc-like
+        surface, and the atlas fits the piece the chart fitted with the chart's ``layers`` and
+        ``k`` (same density, same K: rough 20k, 39 charts, 1.5 s of K choices saved). Before
+        the final fits, on the searched net's mesh, twice the limit counts (the final fits
+        explain more; the holes spanned are the outline's, the same): rough 20k turns to an
+        atlas 6 s sooner."""
         if unexplained > limit:
             return points, "one chart leaves too many points unexplained", None, None
-        if missed is not None and missed[0] > MISSED_LIMIT:  # (`missed_region`)
-            reason = f"one chart's mesh misses a region of the data ({_missed(missed)})"
-            return points, reason, None, None
+        if missed > MISSED_LIMIT:  # a boundary that cut a corner off: a disc-like cloud
+            where = _in_words(self.missed_region_)
+            return points, f"one chart's mesh misses a region of the data ({where})", layers, k
         if bridged_share(self.mesh_, self.points_) > BRIDGE_LIMIT:
             return self.points_, "one chart's mesh spans holes in the data", layers, k
         return None
@@ -514,10 +518,12 @@ class SurfaceReconstructor(BaseEstimator):
                 "has more detail than the network holds",
                 ReconstructionWarning, stacklevel=3,
             )
-        elif self._missed[0] > MISSED_LIMIT:
-            warnings.warn(f"the mesh misses a region of the data: {_missed(self._missed)} lie "
-                          "farther than their noise allows (a boundary that cut it off, or "
-                          "detail the network cannot hold)", ReconstructionWarning, stacklevel=3)
+        elif self.missed_region_[0] > MISSED_LIMIT:  # the same words each time: said once
+            log.info("missed region: %s", _in_words(self.missed_region_))
+            warnings.warn(f"the mesh misses a region of the data: over {MISSED_LIMIT:.0%} of the "
+                          "points, in one patch, lie farther than their noise allows (a "
+                          "boundary that cut it off, or detail the network cannot hold; "
+                          "missed_region_ says where)", ReconstructionWarning, stacklevel=3)
 
     def remesh(self, **params) -> trimesh.Trimesh:
         """Re-mesh with new ``lam``, ``depth``, ``n_corners``, ``boundary`` or ``grid_spacing``
@@ -747,7 +753,7 @@ class SurfaceReconstructor(BaseEstimator):
                 f"{path}: damaged reconstruction state ({one_line(exc)})") from exc
 
 
-def _missed(missed: tuple) -> str:
+def _in_words(missed: tuple) -> str:
     """`faithfulness.missed_region`'s (share, centre) in words."""
     share, centre = missed
     return f"{share:.1%} of the points, round ({', '.join(f'{c:.3g}' for c in centre)})"

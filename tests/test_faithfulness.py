@@ -16,7 +16,6 @@ from reconstruct.faithfulness import (
     neighbour_preservation,
     residual_kurtosis,
     unexplained_fraction,
-    unexplained_points,
 )
 from reconstruct.pipeline import SurfaceReconstructor
 
@@ -97,27 +96,38 @@ def test_a_mesh_missing_a_region_of_the_data_is_measured():
     points = flat_square(4000)
     cut = trimesh.Trimesh([[-1, -1, 0], [1, -1, 0], [1, 0.4, 0], [0.4, 1, 0], [-1, 1, 0]],
                           [[0, 1, 2], [0, 2, 3], [0, 3, 4]])  # the corner x + y > 1.4 off
-    far, measured = unexplained_points(cut, points)
-    share, centre = missed_region(far, measured)
-    assert MISSED_LIMIT < share < 0.045 and share == pytest.approx(len(far) / len(measured))
+    share, centre = missed_region(cut, points)
+    assert MISSED_LIMIT < share < 0.045
+    assert share == pytest.approx(unexplained_fraction(cut, points))  # one patch
     assert np.all(centre[:2] > 0.6)
+    # a cloud stored in rows (a range image): an even stride would leave columns apart
+    u = np.linspace(-1, 1, 200)
+    rows = np.c_[np.stack(np.meshgrid(u, u, indexing="ij"), axis=-1).reshape(-1, 2),
+                 np.zeros(200 * 200)]
+    assert missed_region(cut, rows)[0] == pytest.approx(unexplained_fraction(cut, rows),
+                                                         abs=0.005)
     # noise's unexplained points lie apart: as many, scattered, are no region
     lifted = points.copy()
     lifted[::25, 2] += 0.5
-    far, measured = unexplained_points(square_mesh(), lifted)
-    assert len(far) / len(measured) > 0.03 and missed_region(far, measured)[0] < MISSED_LIMIT
-    assert missed_region(far[:0], measured)[0] == 0.0
+    assert unexplained_fraction(square_mesh(), lifted) > 0.03
+    assert missed_region(square_mesh(), lifted)[0] < MISSED_LIMIT
+    assert missed_region(square_mesh(), points)[0] == 0.0
+    assert unexplained_fraction(square_mesh(), points[:0]) == 0.0  # (no points: none)
 
 
 def test_a_one_chart_mesh_missing_a_region_goes_through_the_atlas_or_is_said(monkeypatch):
+    monkeypatch.setattr("reconstruct.pipeline.unexplained_fraction", lambda *_, **__: 0.03)
     monkeypatch.setattr("reconstruct.pipeline.missed_region",
-                        lambda far, measured: (0.03, np.array([0.5, -0.25, 0.0])))
-    said = "misses a region of the data: 3.0% of the points, round \\(0.5, -0.25, 0\\)"
-    with pytest.warns(ReconstructionWarning, match=said):
-        SurfaceReconstructor(max_layers=1, max_neurons=6, atlas="never").fit(flat_square(900))
+                        lambda *_: (0.03, np.array([0.5, -0.25, 0.0])))
+    with pytest.warns(ReconstructionWarning, match="the mesh misses a region of the data"):
+        model = SurfaceReconstructor(max_layers=1, max_neurons=6, atlas="never").fit(
+            flat_square(900))
+    assert model.missed_region_[0] == 0.03
     model = SurfaceReconstructor(max_layers=1, max_neurons=6).fit(flat_square(900))
     assert model.atlas_reason_ == ("one chart's mesh misses a region of the data (3.0% of the "
                                    "points, round (0.5, -0.25, 0))")
+    # the chart's layers and K are the atlas's: a disc-like cloud, no second search
+    assert model.atlas_.hidden_layers == model.atlas_.charts_[0].hidden_layers_
 
 
 def test_a_mesh_spanning_a_hole_in_the_data_is_measured():

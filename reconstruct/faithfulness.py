@@ -31,6 +31,7 @@ from scipy.stats import kurtosis
 
 from .metrics import distance_to_surface
 from .neighbors import plane_fits
+from .validation import random_subset
 
 #: Share of unexplained points above which a one-chart mesh is reported as wrong.
 UNEXPLAINED_LIMIT = 0.05
@@ -176,10 +177,7 @@ def missed_region(mesh, points, threshold: float | None = None, link: float = MI
     stored in rows leaves columns apart) and linked within ``link`` spacings of those (the
     median of their mean distance to their 8 nearest, as `bridged_share`): its share of them,
     and its centre (3,) (nan without any)."""
-    points = np.asarray(points, dtype=np.float64)
-    if len(points) > _SAMPLES:
-        points = points[np.random.default_rng(random_state).choice(len(points), _SAMPLES,
-                                                                    replace=False)]
+    points = random_subset(np.asarray(points, dtype=np.float64), _SAMPLES, random_state)
     far, measured = unexplained_points(mesh, points, threshold=threshold)
     if len(far) == 0 or len(measured) < 9:
         return float(len(far) / max(len(measured), 1)), (

@@ -410,7 +410,7 @@ class SurfaceReconstructor(BaseEstimator):
                                else (0.0, np.full(3, np.nan)))
         if warm_start is None and self.atlas == "auto":
             reason = self._atlas_reason(points, self.unexplained_, self.hidden_layers_,
-                                        self.n_neighbors_, missed=self.missed_region_[0])
+                                        self.n_neighbors_, missed=self.missed_region_)
             if reason is not None:
                 return self._fit_atlas(*reason, atlas=spare)
         self._check_faithful()
@@ -427,24 +427,24 @@ class SurfaceReconstructor(BaseEstimator):
         return self
 
     def _atlas_reason(self, points, unexplained: float, layers: tuple[int, ...], k: int,
-                      limit: float = UNEXPLAINED_LIMIT, missed: float = 0.0) -> tuple | None:
+                      limit: float = UNEXPLAINED_LIMIT, missed=None) -> tuple | None:
         """(points, reason, hidden layers, K) for `_fit_atlas` when ``mesh_``, one chart, is
         the wrong model of the input ``points`` (n, 3); None when it is not.
 
         It leaves more than ``limit`` of them ``unexplained``: the atlas fits them all and
         searches its own layers (these were searched for a surface folded onto itself). Or,
         after the final fits, it leaves one patch of them over `MISSED_LIMIT` of the cloud
-        (``missed``, of ``missed_region_``), a region its boundary cut off: the atlas fits them
-        all with the chart's ``layers`` and ``k``. Or it spans holes in the data: a disc-like
-        surface, and the atlas fits the piece the chart fitted with the chart's ``layers`` and
-        ``k`` (same density, same K: rough 20k, 39 charts, 1.5 s of K choices saved). Before
-        the final fits, on the searched net's mesh, twice the limit counts (the final fits
-        explain more; the holes spanned are the outline's, the same): rough 20k turns to an
-        atlas 6 s sooner."""
+        (``missed``: `faithfulness.missed_region`), a region its boundary cut off: the atlas
+        fits them all with the chart's ``layers`` and ``k``. Or it spans holes in the data: a
+        disc-like surface, and the atlas fits the piece the chart fitted with the chart's
+        ``layers`` and ``k`` (same density, same K: rough 20k, 39 charts, 1.5 s of K choices
+        saved). Before the final fits, on the searched net's mesh, twice the limit counts (the
+        final fits explain more; the holes spanned are the outline's, the same): rough 20k turns
+        to an atlas 6 s sooner."""
         if unexplained > limit:
             return points, "one chart leaves too many points unexplained", None, None
-        if missed > MISSED_LIMIT:  # a boundary that cut a corner off: a disc-like cloud
-            where = _in_words(self.missed_region_)
+        if missed is not None and missed[0] > MISSED_LIMIT:  # a corner cut off: a disc
+            where = _in_words(missed)
             return points, f"one chart's mesh misses a region of the data ({where})", layers, k
         if bridged_share(self.mesh_, self.points_) > BRIDGE_LIMIT:
             return self.points_, "one chart's mesh spans holes in the data", layers, k

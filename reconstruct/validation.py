@@ -64,13 +64,17 @@ def check_points(points, min_points: int = MIN_POINTS) -> np.ndarray:
     return array
 
 
+#: The fewest points a ``max_points`` may keep.
+MIN_MAX_POINTS = 100
+
+
 def check_max_points(limit) -> None:
     """Refuse a ``max_points`` (`InvalidInputError`) that is neither None nor a whole number of
-    at least 100."""
+    at least `MIN_MAX_POINTS`."""
     if limit is not None and not (isinstance(limit, (int, np.integer))
-                                  and not isinstance(limit, bool) and limit >= 100):
-        raise InvalidInputError(f"max_points must be a whole number >= 100 or None, got "
-                                f"{limit!r}")
+                                  and not isinstance(limit, bool) and limit >= MIN_MAX_POINTS):
+        raise InvalidInputError(f"max_points must be a whole number >= {MIN_MAX_POINTS} or "
+                                f"None, got {limit!r}")
 
 
 def random_subset(points: np.ndarray, limit: int | None, random_state) -> np.ndarray:

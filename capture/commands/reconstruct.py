@@ -93,16 +93,19 @@ def add_parser(subparsers) -> None:
 
 
 def _max_points(text: str):
+    import argparse
+
+    from reconstruct.errors import InvalidInputError
+    from reconstruct.validation import MIN_MAX_POINTS, check_max_points
+
     if text == "all":
         return None
     try:
         value = int(text)
-    except ValueError:
-        value = 0
-    if value < 100:
-        import argparse
-
-        raise argparse.ArgumentTypeError(f"expected all or a whole number >= 100, got {text!r}")
+        check_max_points(value)
+    except (ValueError, InvalidInputError):
+        raise argparse.ArgumentTypeError(
+            f"expected all or a whole number >= {MIN_MAX_POINTS}, got {text!r}") from None
     return value
 
 

@@ -6,8 +6,9 @@ neighbourhood is wide, it joins the sheets and every chart, embedding or geodesi
 runs through both. Here each point gets a tangent plane (PCA of its ``n_layer`` nearest points)
 and its neighbourhood's spread across that plane is tested for two layers: the offsets along the
 normal are split in two (Otsu's split, vectorised over all points) and called layered when the
-two groups lie further apart than one noisy sheet allows (``layer_ratio`` within-group widths).
-A layered point's plane and noise are then refitted on its own side only.
+two groups lie further apart than one noisy sheet allows (``layer_ratio`` within-group widths)
+and lie in parallel planes of at least three points each (not the two faces of an edge:
+`LAYERS_ANGLE`). A layered point's plane and noise are then refitted on its own side only.
 
 An edge i ~ j of the kNN graph (``n_neighbors``) is kept only when
 - the unoriented normals agree within ``max_angle`` degrees,
@@ -67,7 +68,7 @@ ONE_LAYER_RATIO = 2.6
 #: of one face seen along a tilted normal, or (without noise, where any split is many widths
 #: wide) sets one point of the other face apart. An open box 40 × 40 × 60 mm, 8,000 points at
 #: σ 0-0.2 mm (tests/test_sheet_graph.py): 39-66 % of its points were split as two layers,
-#: 1,079-1,747 joined nothing, and its mesh had 10-28 holes along the edges; at 45° with groups
+#: 1,079-1,747 joined nothing, and its mesh had 9-27 holes along the edges; at 45° with groups
 #: of any size, 49-117 points of one-point groups remained at σ 0-0.1 mm, none with three.
 #: bench.atlas's plates (σ 0.5 %) keep their 29 such points at 45° (15 at 35°).
 LAYERS_ANGLE = 45.0

@@ -186,7 +186,7 @@ def test_the_faces_of_an_edge_are_one_sheet(sigma):
     # splits into its two faces, into strips of one face seen along a tilted normal, or (without
     # noise) sets one point of the other face apart, each many widths wide. Taken for two
     # layers, 39-66 % of these clouds' points were split and 1,079-1,747 joined nothing (the
-    # box's mesh had 10-28 holes along its edges). Now none here; the 128 neighbours' test
+    # box's mesh had 9-27 holes along its edges). Now none here; the 128 neighbours' test
     # still takes a crease for layers now and then (seeds 0-5 at σ 0-0.3 mm: 3 of 24 clouds,
     # 56-76 points).
     import trimesh

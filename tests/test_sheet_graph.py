@@ -180,6 +180,15 @@ def test_a_slab_s_faces_stay_joined_where_a_neighbourhood_holds_one_layer():
     assert cross_share(graph.graph_[faces][:, faces], side) == 0  # the faces stay apart
 
 
+def open_box(rng):
+    """(8000, 3) points on a 40 x 40 x 60 mm box without its bottom face, drawn with ``rng``."""
+    import trimesh
+
+    box = trimesh.creation.box((40, 40, 60))
+    box = trimesh.Trimesh(box.vertices, box.faces[~np.isclose(box.triangles_center[:, 2], -30)])
+    return trimesh.sample.sample_surface(box, 8000, seed=rng.integers(2**31))[0]
+
+
 @pytest.mark.parametrize("sigma", [0.0, 0.1, 0.2])
 def test_the_faces_of_an_edge_are_one_sheet(sigma):
     # An open box 40 x 40 x 60 mm, 8,000 points (1.2 mm apart): a neighbourhood across an edge
@@ -189,12 +198,8 @@ def test_the_faces_of_an_edge_are_one_sheet(sigma):
     # box's mesh had 9-27 holes along its edges). Now none here; the narrow or the wide test
     # still takes a corner or an edge for two layers now and then (seeds 0-19 at σ 0-0.3 mm:
     # at most 2.5 % of the points, the largest piece 98.8 % of them).
-    import trimesh
-
-    box = trimesh.creation.box((40, 40, 60))
-    box = trimesh.Trimesh(box.vertices, box.faces[~np.isclose(box.triangles_center[:, 2], -30)])
     rng = np.random.default_rng(0)
-    clean, _ = trimesh.sample.sample_surface(box, 8000, seed=rng.integers(2**31))
+    clean = open_box(rng)
     graph = SheetGraph().fit(clean + rng.normal(0, sigma, clean.shape))
     assert graph.layered_.mean() < 0.05
     assert np.bincount(graph.labels_).max() > 0.97 * len(clean)
@@ -204,12 +209,7 @@ def test_round_off_is_not_a_layer():
     # A noise-free cloud far from the origin: its flat faces' offsets, ~1e-13 apart, are
     # round-off, and every split of them was many widths wide (`ROUND_OFF`): 1,461 of this box's
     # points were taken for two layers, in 298 pieces.
-    import trimesh
-
-    box = trimesh.creation.box((40, 40, 60))
-    box = trimesh.Trimesh(box.vertices, box.faces[~np.isclose(box.triangles_center[:, 2], -30)])
-    rng = np.random.default_rng(0)
-    clean, _ = trimesh.sample.sample_surface(box, 8000, seed=rng.integers(2**31))
+    clean = open_box(np.random.default_rng(0))
     rotation, _ = np.linalg.qr(np.random.default_rng(5).normal(size=(3, 3)))
     graph = SheetGraph().fit(clean @ rotation.T + 1000.0)
     assert graph.layered_.mean() < 0.05

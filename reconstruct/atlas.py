@@ -80,7 +80,7 @@ from .join_alignment import steady_join
 from .mesh_edges import topology, turn_faces
 from .sdf_grid import SparseSDF
 from .sheet_graph import SheetGraph
-from .validation import check_max_points, check_points, random_subset
+from .validation import check_points, random_subset
 
 log = logging.getLogger(__name__)
 
@@ -287,7 +287,6 @@ class AtlasReconstructor(BaseEstimator):
     def _charted(self, points: np.ndarray) -> np.ndarray:
         """The points (m, 3) the atlas charts: all, or a random ``max_points`` of a denser
         cloud (denser adds noise, not detail)."""
-        check_max_points(self.max_points)
         charted = random_subset(points, self.max_points, self.random_state)
         if len(charted) < len(points):
             log.info("atlas of %d of the %d points", len(charted), len(points))

@@ -170,6 +170,12 @@ def unexplained_points(mesh, points, factor: float = NOISE_FACTOR, k: int | None
     return measured[far], measured
 
 
+def median_spacing(tree: cKDTree, at: np.ndarray) -> float:
+    """The median over the points ``at`` (m, 3) of their mean distance to their 8 nearest
+    points of ``tree`` (``at`` among them)."""
+    return float(np.median(tree.query(at, k=9)[0][:, 1:].mean(axis=1)))
+
+
 def missed_region(mesh, points, threshold: float | None = None, link: float = MISSED_LINK,
                   random_state: int = 0) -> tuple[float, np.ndarray]:
     """The largest patch of ``points`` (n, 3) farther from ``mesh`` than ``threshold``
@@ -182,7 +188,7 @@ def missed_region(mesh, points, threshold: float | None = None, link: float = MI
     if len(far) == 0 or len(measured) < 9:
         return float(len(far) / max(len(measured), 1)), (
             far.mean(axis=0) if len(far) else np.full(3, np.nan))
-    spacing = float(np.median(cKDTree(measured).query(measured, k=9)[0][:, 1:].mean(axis=1)))
+    spacing = median_spacing(cKDTree(measured), measured)
     pairs = cKDTree(far).query_pairs(link * spacing, output_type="ndarray")
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
                        shape=(len(far), len(far)))
@@ -200,8 +206,7 @@ def bridged_share(mesh, points, spacings: float = BRIDGE_SPACINGS) -> float:
     if len(mesh.faces) == 0 or len(points) < 9:
         return 0.0
     tree = cKDTree(points)
-    near = tree.query(_evenly(points), k=9)[0][:, 1:]
-    spacing = float(np.median(near.mean(axis=1)))
+    spacing = median_spacing(tree, _evenly(points))
     far = tree.query(mesh.triangles_center)[0] > spacings * spacing
     area = mesh.area_faces
     return float(area[far].sum() / max(area.sum(), 1e-300))

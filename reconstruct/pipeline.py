@@ -50,7 +50,7 @@ from .mlp import AdaptiveMLP
 from .outline import border_inset, border_spacing, extend_outline
 from .pipeline_state import STATE_FORMAT, reconstruction_from_state, reconstruction_state
 from .spline import BoundarySpline, SplineInput, spline_input
-from .validation import check_max_points, check_points, random_subset
+from .validation import check_points, random_subset
 
 log = logging.getLogger(__name__)
 
@@ -292,7 +292,6 @@ class SurfaceReconstructor(BaseEstimator):
 
     def _drawn(self, points: np.ndarray) -> np.ndarray:
         """The points (m, 3) fitted: all, or a random ``max_points`` of denser ``points``."""
-        check_max_points(self.max_points)
         drawn = random_subset(points, self.max_points, self.random_state)
         if len(drawn) < len(points):
             log.info("fitting %d of the %d points (max_points)", len(drawn), len(points))

@@ -81,7 +81,8 @@ def random_subset(points: np.ndarray, limit: int | None, random_state) -> np.nda
     """The rows (m, 3) of ``points`` (n, 3) a fit takes: all when ``limit`` is None or not
     below n, else a random ``limit`` of them, in their order. Seeded by ``random_state`` when it
     is a whole number, else by 0: the same rows at every call (a fit takes up what `embed`
-    computed of them)."""
+    computed of them). A ``limit`` `check_max_points` refuses raises `InvalidInputError`."""
+    check_max_points(limit)
     if limit is None or len(points) <= limit:
         return points
     seed = random_state if isinstance(random_state, (int, np.integer)) else 0

@@ -6,7 +6,7 @@ import trimesh
 
 from reconstruct.errors import DegenerateCloudError, InvalidInputError, ReconstructionWarning
 from reconstruct.io import check_mesh_path, read_points, write_mesh
-from reconstruct.validation import MIN_POINTS, check_points
+from reconstruct.validation import MIN_POINTS, TWIN_SHARE, check_points, merge_duplicates
 
 RNG = np.random.default_rng(0)
 CLOUD = RNG.normal(size=(50, 3))
@@ -85,6 +85,39 @@ def test_check_points_merges_duplicates_with_warning():
     with pytest.warns(ReconstructionWarning, match="merged 5 duplicate points"):
         clean = check_points(cloud)
     np.testing.assert_array_equal(clean, CLOUD)
+
+
+def plane_sample(n, seed=0):
+    rng = np.random.default_rng(seed)
+    return np.c_[rng.uniform(0, 100, (n, 2)), rng.normal(0, 0.5, n)]
+
+
+def test_check_points_merges_near_duplicates_left_by_round_off():
+    cloud = plane_sample(2000)
+    copy = cloud[:300] + np.random.default_rng(1).normal(0, 1e-9, (300, 3))
+    with pytest.warns(ReconstructionWarning, match="merged 300 duplicate points"):
+        clean = check_points(np.vstack([cloud, copy]))
+    np.testing.assert_array_equal(clean, cloud)
+
+
+@pytest.mark.parametrize("apart", [1e-3, 0.05])  # of the nearest-neighbour spacing (0.9)
+def test_check_points_merges_a_cloud_with_its_moved_copy(apart):
+    cloud = plane_sample(2000)
+    copy = cloud + np.random.default_rng(1).normal(0, apart, cloud.shape)
+    with pytest.warns(ReconstructionWarning, match="merged 2000 points into their twins"):
+        clean = check_points(np.vstack([cloud, copy]))
+    np.testing.assert_array_equal(clean, cloud)
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.5])
+def test_an_ordinary_sample_has_too_few_twins_to_merge(noise):
+    rng = np.random.default_rng(2)
+    cloud = np.c_[rng.uniform(0, 100, (20000, 2)), rng.normal(0, noise, 20000) if noise else
+                  np.zeros(20000)]
+    kept, why = merge_duplicates(cloud)
+    assert len(kept) == len(cloud) and why == ""
+    # (a noise-free sample's twins are about 7 %, against TWIN_SHARE)
+    assert TWIN_SHARE >= 0.2
 
 
 def test_clean_cloud_passes_silently():

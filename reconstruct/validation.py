@@ -16,13 +16,14 @@ log = logging.getLogger(__name__)
 
 #: The 85/10/5 split needs a handful of validation points, and the boundary needs >= 8 corners.
 MIN_POINTS = 20
-#: Points closer to each other than this share of the cloud's bounding-box diagonal are one
-#: point (`merge_duplicates`): a cloud saved twice and merged, its copy moved by round-off
-#: (1e-9 mm). Kept twice, every neighbourhood
-#: holds half the places it counts and the sheet graph cuts the cloud apart: mug 10k points
-#: each doubled 1e-9 to 1e-3 mm apart: 3,550 points left out of every chart against 973, Euler
-#: -4 to -8 against 0 (handles), denoise 0.58-0.66 against 0.49. Two distinct samples of a
-#: 20k cloud lie this close with odds of about 1e-6.
+#: Points closer to each other than this share of the cloud's diagonal are one point
+#: (`merge_duplicates`): a cloud saved twice and merged, its copy moved by round-off (1e-9 mm).
+#: Kept twice, every neighbourhood holds half the places it counts and the sheet graph cuts the
+#: cloud apart: mug 10k points each doubled 1e-9 to 1e-3 mm apart: 3,550 points left out of
+#: every chart against 973, Euler -4 to -8 against 0 (handles), denoise 0.58-0.66 against 0.49.
+#: Two distinct samples of a 20k cloud lie this close with odds of about 1e-6. The diagonal
+#: leaves far outliers out (`robust_diagonal`): two stray points 1 km off merged a 100 mm cloud
+#: into three points.
 NEAR_DUPLICATE = 1e-5
 #: A point is a twin when its nearest neighbour lies within this share of the median distance
 #: to the `TWIN_NEIGHBOUR`-th nearest: a cloud merged with a copy of itself moved by less than
@@ -85,14 +86,22 @@ def check_points(points, min_points: int = MIN_POINTS) -> np.ndarray:
     return array
 
 
+def robust_diagonal(points: np.ndarray) -> float:
+    """The diagonal of the box of ``points`` (n, 3) leaving out far outliers: twice the
+    interquartile range along each axis (the whole range of points spread evenly; a single
+    stray point a kilometre off does not count)."""
+    low, high = np.percentile(points, [25, 75], axis=0)
+    return float(np.linalg.norm(2 * (high - low)))
+
+
 def merge_duplicates(points: np.ndarray) -> tuple[np.ndarray, str]:
     """The ``points`` (n, 3) kept, as (k,) sorted indices, and why the others were merged ("":
     none were). Of each group of points chained closer than `NEAR_DUPLICATE` times the
-    bounding-box diagonal the first is kept, and so of each group of twins (`TWIN`) when over
+    diagonal (`robust_diagonal`) the first is kept, and so of each group of twins (`TWIN`) when over
     `TWIN_SHARE` of the points have one besides such duplicates."""
     n = len(points)
     tree = cKDTree(points)
-    reach = NEAR_DUPLICATE * float(np.linalg.norm(np.ptp(points, axis=0)))
+    reach = NEAR_DUPLICATE * robust_diagonal(points)
     pairs = [tree.query_pairs(reach, output_type="ndarray")]
     why = f"duplicate points (each within {NEAR_DUPLICATE:g} of the diagonal of another)"
     k = min(TWIN_NEIGHBOUR, n - 1)

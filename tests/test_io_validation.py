@@ -100,6 +100,14 @@ def test_check_points_merges_near_duplicates_left_by_round_off():
     np.testing.assert_array_equal(clean, cloud)
 
 
+def test_far_outliers_do_not_make_every_point_a_duplicate():
+    cloud = plane_sample(2000)
+    with_outliers = np.vstack([cloud, [[1e6, 1e6, 1e6], [-1e6, 0.0, 0.0]]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_array_equal(check_points(with_outliers), with_outliers)
+
+
 @pytest.mark.parametrize("apart", [1e-3, 0.05])  # of the nearest-neighbour spacing (0.9)
 def test_check_points_merges_a_cloud_with_its_moved_copy(apart):
     cloud = plane_sample(2000)

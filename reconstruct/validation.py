@@ -16,28 +16,25 @@ log = logging.getLogger(__name__)
 
 #: The 85/10/5 split needs a handful of validation points, and the boundary needs >= 8 corners.
 MIN_POINTS = 20
-#: Points closer to each other than this share of the cloud's diagonal are one point
-#: (`merge_duplicates`): a cloud saved twice and merged, its copy moved by round-off (1e-9 mm).
-#: Kept twice, every neighbourhood holds half the places it counts and the sheet graph cuts the
-#: cloud apart: mug 10k points each doubled 1e-9 to 1e-3 mm apart: 3,550 points left out of
-#: every chart against 973, Euler -4 to -8 against 0 (handles), denoise 0.58-0.66 against 0.49.
-#: Two distinct samples of a 20k cloud lie this close with odds of about 1e-6. The diagonal
-#: leaves far outliers out (`robust_diagonal`): two stray points 1 km off merged a 100 mm cloud
-#: into three points.
-NEAR_DUPLICATE = 1e-5
-#: A point is a twin when its nearest neighbour lies within this share of the median distance
-#: to the `TWIN_NEIGHBOUR`-th nearest: a cloud merged with a copy of itself moved by less than
-#: the spacing (a re-registered copy) is all twins. Twins are merged when more than
-#: `TWIN_SHARE` of the points are: a sample of a surface has 1-2 % twins at σ 0.5 % (mug,
-#: chair, 1.6k and 20k) and a noise-free one about 7 % (a Poisson sample of a plane); the mug
-#: 10k doubled 0.01-0.2 mm apart (σ 0.83 mm) 40-100 %, Euler -2 to -34 against 0; doubled
-#: 0.3 mm apart 16 % (Euler 0), a tenth of its points doubled 20 % (Euler 0).
-TWIN = 0.1
-TWIN_NEIGHBOUR = 8
-TWIN_SHARE = 0.25
+#: Points closer to each other than this share of the cloud's diagonal (`robust_diagonal`) are
+#: one point (`merge_duplicates`): exact duplicates, and copies moved by round-off (1e-9 mm).
+NEAR_DUPLICATE = 1e-9
+#: A point is a twin when its nearest neighbour lies nearer than this share of its second
+#: nearest: it stands in a pair apart from the others. A cloud merged with a copy of itself
+#: moved by less than the spacing (saved twice, or re-registered) is all twins; kept twice, the
+#: sheet graph cuts it apart: the mug of 10k points each doubled 1e-9 to 0.2 mm apart (σ 0.83
+#: mm, spacing 1.4 mm) had 3,550 points left out of every chart against 973 and Euler -2 to
+#: -34 against 0 (handles). A sample of a surface has few twins whatever its density, as
+#: (d1 / d2)² of a Poisson sample of a plane is uniform: 4 %, 1 % for the mug at σ 0.5 %; points
+#: thrown at random along lines 19 %. The mug doubled 0.2 mm apart has 43 %, 0.3 mm apart
+#: 20 % (and is meshed with its genus as it is).
+TWIN = 0.2
+#: Twins are merged when more than this share of the points are twins.
+TWIN_SHARE = 0.3
+#: Fewer points than this do not tell twins from chance.
+TWIN_MIN_POINTS = 100
 #: Points the share of twins is measured on (at random; a cloud's every point beyond).
 TWIN_PROBES = 20000
-
 
 def check_points(points, min_points: int = MIN_POINTS) -> np.ndarray:
     """Validate a cloud and return it as (n, 3) float64, repaired where a sensible result exists.
@@ -95,35 +92,51 @@ def robust_diagonal(points: np.ndarray) -> float:
 
 
 def merge_duplicates(points: np.ndarray) -> tuple[np.ndarray, str]:
-    """The ``points`` (n, 3) kept, as (k,) sorted indices, and why the others were merged ("":
-    none were). Of each group of points chained closer than `NEAR_DUPLICATE` times the
-    diagonal (`robust_diagonal`) the first is kept, and so of each group of twins (`TWIN`) when over
-    `TWIN_SHARE` of the points have one besides such duplicates."""
+    """The ``points`` (n, 3) kept, as (k,) sorted indices, and what was merged ("": nothing):
+    the first of each group of points within `NEAR_DUPLICATE` of one another, and of each pair
+    of twins (`TWIN`) when they are over `TWIN_SHARE` of the points; again until nothing
+    merges, so that the points kept give themselves back."""
+    kept, said = np.arange(len(points)), []
+    while True:
+        step, what = _merged_once(points[kept])
+        if len(step) == len(kept):
+            return kept, " and ".join(dict.fromkeys(said))
+        kept, said = kept[step], said + [what]
+
+
+def _merged_once(points: np.ndarray) -> tuple[np.ndarray, str]:
+    """One pass of `merge_duplicates`: (k,) sorted indices kept, and what was merged."""
     n = len(points)
+    if np.abs(points).max(initial=0.0) > 1e150:  # squared distances overflow: not compared
+        return np.arange(n), ""
     tree = cKDTree(points)
     reach = NEAR_DUPLICATE * robust_diagonal(points)
     pairs = [tree.query_pairs(reach, output_type="ndarray")]
-    why = f"duplicate points (each within {NEAR_DUPLICATE:g} of the diagonal of another)"
-    k = min(TWIN_NEIGHBOUR, n - 1)
-    if k >= 2:  # the share of twins, on at most TWIN_PROBES points (1M points: 6 s for all)
+    what = "duplicate points"
+    if n >= TWIN_MIN_POINTS:  # on at most TWIN_PROBES points (1M points: 2 s for all)
         probes = (np.arange(n) if n <= TWIN_PROBES else
                   np.sort(np.random.default_rng(0).choice(n, TWIN_PROBES, replace=False)))
-        distance = tree.query(points[probes], k + 1)[0]
-        spacing = np.median(distance[:, k])
-        share = np.mean((distance[:, 1] < TWIN * spacing) & (distance[:, 1] > reach))
+        share = np.mean(_twins(tree, points[probes], reach)[0])
         if share > TWIN_SHARE:
-            distance, index = tree.query(points, 2)
-            twin = (distance[:, 1] < TWIN * spacing) & (distance[:, 1] > reach)
-            pairs.append(np.column_stack([np.flatnonzero(twin), index[twin, 1]]))
-            why = (f"points into their twins ({share:.0%} of the points lie within "
-                   f"{TWIN:g} spacings of another: a cloud merged with a moved copy of itself?)")
+            twin, partner = _twins(tree, points, reach)
+            pairs.append(np.column_stack([np.flatnonzero(twin), partner[twin]]))
+            what = (f"points into their twins ({share:.0%} of the points have a neighbour "
+                    f"{1 / TWIN:g} times nearer than their next: a cloud merged with a moved "
+                    f"copy of itself?)")
     pairs = np.concatenate(pairs)
     if len(pairs) == 0:
         return np.arange(n), ""
     _, group = connected_components(coo_matrix((np.ones(len(pairs)), pairs.T), shape=(n, n)),
                                     directed=False)
     _, first = np.unique(group, return_index=True)
-    return np.sort(first), why
+    return np.sort(first), what
+
+
+def _twins(tree: cKDTree, at: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """(q,) bool whether each of the points ``at`` (q, 3) of ``tree`` is a twin (`TWIN`; its
+    nearest farther than ``reach``, the duplicates'), and (q,) the index of its nearest."""
+    distance, index = tree.query(at, 3)
+    return (distance[:, 1] > reach) & (distance[:, 1] < TWIN * distance[:, 2]), index[:, 1]
 
 
 #: The fewest points a ``max_points`` may keep.

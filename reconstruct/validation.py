@@ -22,19 +22,29 @@ NEAR_DUPLICATE = 1e-9
 #: A point is a twin when its nearest neighbour lies nearer than this share of its second
 #: nearest: it stands in a pair apart from the others. A cloud merged with a copy of itself
 #: moved by less than the spacing (saved twice, or re-registered) is all twins; kept twice, the
-#: sheet graph cuts it apart: the mug of 10k points each doubled 1e-9 to 0.2 mm apart (σ 0.83
-#: mm, spacing 1.4 mm) had 3,550 points left out of every chart against 973 and Euler -2 to
-#: -34 against 0 (handles). A sample of a surface has few twins whatever its density, as
-#: (d1 / d2)² of a Poisson sample of a plane is uniform: 4 %, 1 % for the mug at σ 0.5 %; points
-#: thrown at random along lines 19 %. The mug doubled 0.2 mm apart has 43 %, 0.3 mm apart
-#: 20 % (and is meshed with its genus as it is).
+#: sheet graph cuts it apart: the mug of 10k points (σ 0.83 mm, spacing 1.4 mm), each doubled
+#: with 1e-9 to 0.2 mm of jitter along each axis, had 3,550 points left out of every chart
+#: against 973 and Euler -2 to -34 against 0 (handles). A sample of a surface has few twins
+#: whatever its density, as (d1 / d2)² of a Poisson sample of a plane is uniform: 4 %, 1 % for
+#: the mug at σ 0.5 %; points thrown at random along lines 19 %. The mug doubled with 0.2 mm of
+#: jitter has 43 %, with 0.3 mm 20 % (and is meshed with its genus as it is).
 TWIN = 0.2
-#: Twins are merged when more than this share of the points are twins.
-TWIN_SHARE = 0.3
+#: Twins are merged when more than this share of the points are twins (two interleaved sets of
+#: evenly spaced stripes, as from two cameras, have 32 %).
+TWIN_SHARE = 0.4
+#: In a cloud of twins, mutual nearest neighbours nearer than this share of their next are
+#: merged: a copy moved 0.1 of the spacing often has a neighbour of its original within five
+#: times as far (a plane of 3,000 points doubled 0.1 spacings apart kept 3,993 points with
+#: `TWIN` alone, and its sheet graph fell into 74 pieces; 3,092 and one piece with this).
+TWIN_PAIR = 0.5
+#: Passes of `merge_duplicates` at most (each removes a share of the points; a contrived cloud
+#: whose interquartile range each removal widens took 198).
+MERGE_PASSES = 10
 #: Fewer points than this do not tell twins from chance.
 TWIN_MIN_POINTS = 100
 #: Points the share of twins is measured on (at random; a cloud's every point beyond).
 TWIN_PROBES = 20000
+
 
 def check_points(points, min_points: int = MIN_POINTS) -> np.ndarray:
     """Validate a cloud and return it as (n, 3) float64, repaired where a sensible result exists.
@@ -94,20 +104,28 @@ def robust_diagonal(points: np.ndarray) -> float:
 def merge_duplicates(points: np.ndarray) -> tuple[np.ndarray, str]:
     """The ``points`` (n, 3) kept, as (k,) sorted indices, and what was merged ("": nothing):
     the first of each group of points within `NEAR_DUPLICATE` of one another, and of each pair
-    of twins (`TWIN`) when they are over `TWIN_SHARE` of the points; again until nothing
-    merges, so that the points kept give themselves back."""
-    kept, said = np.arange(len(points)), []
-    while True:
+    of twins when they are over `TWIN_SHARE` of the points (`_merged_once`); again until
+    nothing merges (at most `MERGE_PASSES` times), so that the points kept give themselves
+    back."""
+    _, first = np.unique(points, axis=0, return_index=True)  # exact: query_pairs would list
+    kept = np.sort(first)  # every pair of a large group (30,000 invalid pixels at the origin)
+    said = ["duplicate points"] if len(kept) < len(points) else []
+    for _ in range(MERGE_PASSES):
         step, what = _merged_once(points[kept])
         if len(step) == len(kept):
-            return kept, " and ".join(dict.fromkeys(said))
+            break
         kept, said = kept[step], said + [what]
+    return kept, " and ".join(dict.fromkeys(said))
 
 
 def _merged_once(points: np.ndarray) -> tuple[np.ndarray, str]:
-    """One pass of `merge_duplicates`: (k,) sorted indices kept, and what was merged."""
+    """One pass of `merge_duplicates` over distinct ``points`` (n, 3): (k,) sorted indices
+    kept, and what was merged. When over `TWIN_SHARE` of the points are twins (`TWIN`), each
+    pair of mutual nearest neighbours nearer than `TWIN_PAIR` times their next is merged: the
+    copies that a neighbour of the original stands close to as well."""
     n = len(points)
-    if np.abs(points).max(initial=0.0) > 1e150:  # squared distances overflow: not compared
+    scale = np.abs(points).max(initial=0.0)
+    if not 1e-150 < scale < 1e150:  # squared distances overflow or underflow: not compared
         return np.arange(n), ""
     tree = cKDTree(points)
     reach = NEAR_DUPLICATE * robust_diagonal(points)
@@ -116,10 +134,13 @@ def _merged_once(points: np.ndarray) -> tuple[np.ndarray, str]:
     if n >= TWIN_MIN_POINTS:  # on at most TWIN_PROBES points (1M points: 2 s for all)
         probes = (np.arange(n) if n <= TWIN_PROBES else
                   np.sort(np.random.default_rng(0).choice(n, TWIN_PROBES, replace=False)))
-        share = np.mean(_twins(tree, points[probes], reach)[0])
+        distance = tree.query(points[probes], 3)[0]
+        share = np.mean(_nearer(distance, reach, TWIN))
         if share > TWIN_SHARE:
-            twin, partner = _twins(tree, points, reach)
-            pairs.append(np.column_stack([np.flatnonzero(twin), partner[twin]]))
+            distance, index = tree.query(points, 3)
+            partner = index[:, 1]
+            pair = _nearer(distance, reach, TWIN_PAIR) & (partner[partner] == np.arange(n))
+            pairs.append(np.column_stack([np.flatnonzero(pair), partner[pair]]))
             what = (f"points into their twins ({share:.0%} of the points have a neighbour "
                     f"{1 / TWIN:g} times nearer than their next: a cloud merged with a moved "
                     f"copy of itself?)")
@@ -132,11 +153,11 @@ def _merged_once(points: np.ndarray) -> tuple[np.ndarray, str]:
     return np.sort(first), what
 
 
-def _twins(tree: cKDTree, at: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
-    """(q,) bool whether each of the points ``at`` (q, 3) of ``tree`` is a twin (`TWIN`; its
-    nearest farther than ``reach``, the duplicates'), and (q,) the index of its nearest."""
-    distance, index = tree.query(at, 3)
-    return (distance[:, 1] > reach) & (distance[:, 1] < TWIN * distance[:, 2]), index[:, 1]
+def _nearer(distance: np.ndarray, reach: float, share: float) -> np.ndarray:
+    """(q,) bool: points whose nearest (``distance`` (q, 3) to themselves and their two
+    nearest) lies farther than ``reach`` (the duplicates') and nearer than ``share`` times the
+    second."""
+    return (distance[:, 1] > reach) & (distance[:, 1] < share * distance[:, 2])
 
 
 #: The fewest points a ``max_points`` may keep.

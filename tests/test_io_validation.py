@@ -152,14 +152,21 @@ def far_outliers(share, seed=0):
 @pytest.mark.parametrize("cloud", [
     np.c_[np.random.default_rng(2).uniform(0, 100, (20000, 2)), np.zeros(20000)],
     plane_sample(20000, seed=2), lines_sample(), two_densities(), far_outliers(0.6),
-    plane_sample(2000) * 1e160,
+    plane_sample(2000) * 1e160, plane_sample(2000) * 1e-170,
 ], ids=["noise-free plane", "noisy plane", "random along lines", "two densities",
-        "60 % far outliers", "huge coordinates"])
+        "60 % far outliers", "huge coordinates", "tiny coordinates"])
 def test_an_ordinary_sample_has_no_twins_to_merge(cloud):
     # twins (a point's nearest five times nearer than its next): a Poisson sample of a plane
     # has 4 %, points at random along lines 19 %, against TWIN_SHARE
     kept, merged = merge_duplicates(cloud)
     assert len(kept) == len(cloud) and merged == ""
+
+
+def test_many_points_at_one_place_merge_at_once():
+    cloud = plane_sample(20000)  # (invalid pixels saved at the origin: every pair listed
+    with_zeros = np.vstack([cloud, np.zeros((30000, 3))])  # took 26 GB)
+    with pytest.warns(ReconstructionWarning, match="merged 29999 duplicate points"):
+        assert len(check_points(with_zeros)) == 20001
 
 
 def test_a_tiny_cloud_is_never_merged_by_chance():

@@ -129,11 +129,11 @@ def _merged_once(points: np.ndarray) -> tuple[np.ndarray, str]:
     `TWIN_OFFSETS` times the twins' median distance is merged: also the copies that a
     neighbour of the original stands close to."""
     n = len(points)
-    scale = np.abs(points).max(initial=0.0)
-    if not 1e-150 < scale < 1e150:  # squared distances overflow or underflow: not compared
+    size = robust_diagonal(points) if np.abs(points).max(initial=0.0) < 1e150 else np.inf
+    if not 1e-150 < size < np.inf:  # squared distances overflow or underflow: not compared
         return np.arange(n), ""
     tree = cKDTree(points)
-    reach = NEAR_DUPLICATE * robust_diagonal(points)
+    reach = NEAR_DUPLICATE * size
     pairs = [tree.query_pairs(reach, output_type="ndarray")]
     what = "duplicate points"
     if n >= TWIN_MIN_POINTS:  # on at most TWIN_PROBES points (1M points: 2 s for all)

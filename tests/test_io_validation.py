@@ -153,8 +153,9 @@ def far_outliers(share, seed=0):
     np.c_[np.random.default_rng(2).uniform(0, 100, (20000, 2)), np.zeros(20000)],
     plane_sample(20000, seed=2), lines_sample(), two_densities(), far_outliers(0.6),
     plane_sample(2000) * 1e160, plane_sample(2000) * 1e-170,
+    np.vstack([plane_sample(2000) * 1e-170, [[1.0, 1.0, 1.0]]]),
 ], ids=["noise-free plane", "noisy plane", "random along lines", "two densities",
-        "60 % far outliers", "huge coordinates", "tiny coordinates"])
+        "60 % far outliers", "huge coordinates", "tiny coordinates", "tiny spread"])
 def test_an_ordinary_sample_has_no_twins_to_merge(cloud):
     # twins (a point's nearest five times nearer than its next): a Poisson sample of a plane
     # has 4 %, points at random along lines 19 %, against TWIN_SHARE

@@ -20,7 +20,13 @@ from scipy.spatial.distance import cdist
 from sklearn.base import BaseEstimator
 from sklearn.manifold import LocallyLinearEmbedding
 
-from .errors import DegenerateCloudError, FitError, InvalidInputError, ReconstructionWarning
+from .errors import (
+    CloudInPiecesError,
+    DegenerateCloudError,
+    FitError,
+    InvalidInputError,
+    ReconstructionWarning,
+)
 from .neighbors import (
     K_MAX,
     choose_n_neighbors,
@@ -65,6 +71,9 @@ class SurfaceEmbedding(BaseEstimator):
     n_neighbors : K of the kNN graph; None chooses it (minimum landmark residual variance).
     n_landmarks : landmarks of landmark Isomap; None uses `default_n_landmarks`.
     remove_outliers : drop statistical outliers first (`statistical_outlier_mask`).
+    other_pieces : the share of the points that the graph's pieces other than the largest may
+        hold: the largest is embedded (with a warning when there are others);
+        `CloudInPiecesError` beyond it.
     random_state : seed of the landmark sampling and the eigensolvers.
 
     Fitted attributes: ``embedding_`` (m, 2) float64 in the cloud's length unit (geodesic
@@ -83,12 +92,14 @@ class SurfaceEmbedding(BaseEstimator):
         n_neighbors: int | None = None,
         n_landmarks: int | None = None,
         remove_outliers: bool = True,
+        other_pieces: float = 0.5,
         random_state: int | None = 0,
     ):
         self.method = method
         self.n_neighbors = n_neighbors
         self.n_landmarks = n_landmarks
         self.remove_outliers = remove_outliers
+        self.other_pieces = other_pieces
         self.random_state = random_state
 
     def fit(self, points, y=None) -> SurfaceEmbedding:
@@ -206,15 +217,14 @@ class SurfaceEmbedding(BaseEstimator):
                 f"use method='landmark' above {ISOMAP_MAX_POINTS}"
             )
 
-    @staticmethod
-    def _largest_piece(graph) -> np.ndarray:
+    def _largest_piece(self, graph) -> np.ndarray:
         labels, sizes = component_sizes(graph)
         largest, total = int(sizes.max()), int(sizes.sum())
         if len(sizes) > 1:
-            if largest < 0.5 * total:
-                raise DegenerateCloudError(
+            if total - largest > self.other_pieces * total:
+                raise CloudInPiecesError(
                     f"neighbourhood graph has {len(sizes)} pieces; the largest holds only "
-                    f"{largest} of {total} points"
+                    f"{largest} of {total} points", np.sort(sizes)[::-1]
                 )
             warnings.warn(
                 f"neighbourhood graph has {len(sizes)} pieces; reconstructing the largest "

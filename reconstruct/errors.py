@@ -15,6 +15,15 @@ class DegenerateCloudError(InvalidInputError):
     """The cloud has no 2D surface to recover (collinear, or a neighbourhood graph in pieces)."""
 
 
+class CloudInPiecesError(DegenerateCloudError):
+    """The cloud's neighbourhood graph is in pieces that one disc-like surface cannot hold
+    (several objects, or parts apart); ``sizes`` (p,) the pieces' point counts, largest first."""
+
+    def __init__(self, message: str, sizes):
+        super().__init__(message)
+        self.sizes = sizes
+
+
 class FitError(ReconstructionError, RuntimeError):
     """A numeric step failed on valid input (embedding, training, spline fit)."""
 

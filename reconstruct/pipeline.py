@@ -27,6 +27,7 @@ from .alignment import align_to
 from .boundary import MultiDepthBoundary, PCABoundary, boundary_geometry
 from .embedding import SurfaceEmbedding
 from .errors import (
+    CloudInPiecesError,
     FitError,
     InvalidInputError,
     NotFittedError,
@@ -301,8 +302,13 @@ class SurfaceReconstructor(BaseEstimator):
         return (self.embedding, self.n_neighbors, self.random_state, self.boundary,
                 self.n_corners)
 
-    def _embedding_estimator(self, n_neighbors) -> SurfaceEmbedding:
+    def _embedding_estimator(self, n_neighbors, may_chart: bool = False) -> SurfaceEmbedding:
+        """The embedding step; one that ``may_chart`` (an atlas may follow) refuses a cloud
+        whose graph's pieces other than the largest hold over `MISSED_LIMIT` of it (several
+        objects: one chart of the largest would leave them out, and three of a third each
+        were refused outright) with `CloudInPiecesError`."""
         return SurfaceEmbedding(method=self.embedding, n_neighbors=n_neighbors,
+                                other_pieces=MISSED_LIMIT if may_chart else 0.5,
                                 random_state=self.random_state)
 
     def _check_embedded(self, embedded: Embedded, points, warm_start) -> None:
@@ -321,13 +327,21 @@ class SurfaceReconstructor(BaseEstimator):
             if not hasattr(warm_start, "mlp_"):
                 raise WarmStartRefused("the earlier fit has no network (loaded from disk)")
             n_neighbors = warm_start.n_neighbors_ if n_neighbors is None else n_neighbors
-        if embedded is None and warm_start is None and self.atlas == "auto":
+        may_chart = embedded is None and warm_start is None and self.atlas == "auto"
+        if may_chart:
             reason = self._atlas_at_a_glance(points, n_neighbors)
             if reason is not None:
                 self.timings_["embedding"] = time.perf_counter() - started
                 return self._fit_atlas(points, reason, atlas=spare)
         if embedded is None:
-            embedding, boundaries = self._embedding_estimator(n_neighbors).fit(points), {}
+            try:
+                embedding = self._embedding_estimator(n_neighbors, may_chart).fit(points)
+            except CloudInPiecesError as exc:
+                if not may_chart:
+                    raise
+                self.timings_["embedding"] = time.perf_counter() - started
+                return self._fit_atlas(points, _in_pieces(exc), atlas=spare)
+            boundaries = {}
         else:
             embedding, boundaries = embedded.embedding, dict(embedded.boundaries)
         self.timings_["embedding"] = time.perf_counter() - started
@@ -357,7 +371,11 @@ class SurfaceReconstructor(BaseEstimator):
         if len(points) <= GLANCE_POINTS:
             return None
         glanced = random_subset(points, GLANCE_POINTS, self.random_state)
-        residual = self._embedding_estimator(n_neighbors).fit(glanced).residual_variance_
+        try:
+            residual = self._embedding_estimator(n_neighbors, True).fit(
+                glanced).residual_variance_
+        except CloudInPiecesError as exc:
+            return f"of {GLANCE_POINTS} of its points, {_in_pieces(exc)}"
         if residual <= GLANCE_MARGIN * ATLAS_RESIDUAL:
             log.debug("%d of the %d points embed with residual variance %.3f: embedding all",
                       GLANCE_POINTS, len(points), residual)
@@ -756,3 +774,10 @@ def _in_words(missed: tuple) -> str:
     """`faithfulness.missed_region`'s (share, centre) in words."""
     share, centre = missed
     return f"{share:.1%} of the points, round ({', '.join(f'{c:.3g}' for c in centre)})"
+
+
+def _in_pieces(exc: CloudInPiecesError) -> str:
+    """Why a cloud in pieces goes to the atlas, in words."""
+    sizes = exc.sizes
+    return (f"its neighbourhood graph is in {len(sizes)} pieces, the largest {sizes[0]} of "
+            f"{sizes.sum()} points (several objects or parts apart)")

@@ -137,9 +137,8 @@ def test_the_simulated_turntable_serves_another_process_on_a_pty(tmp_path):
 
 
 def test_a_cloud_in_two_pieces_meshes_both(tmp_path, capsys):
-    # One chart embeds the largest piece only (said in one line); the other piece's points are
-    # then unexplained by its mesh, so the cloud goes to the atlas, which meshes both: no
-    # piece of the data is dropped without a word.
+    # One chart would embed the largest piece only: the cloud goes to the atlas (said in one
+    # line), which meshes both: no piece of the data is dropped.
     rng = np.random.default_rng(0)
     big = np.column_stack([rng.uniform(-1, 1, (600, 2)), rng.normal(0, 0.01, 600)])
     small = np.column_stack([rng.uniform(3, 4, (150, 2)), rng.normal(0, 0.01, 150)])
@@ -148,7 +147,8 @@ def test_a_cloud_in_two_pieces_meshes_both(tmp_path, capsys):
     args = ["reconstruct", str(tmp_path / "two.xyz"), "-o", str(out), "--max-layers", "1",
             "--max-neurons", "4"]
     assert main(args) == 0
-    assert "2 pieces; reconstructing the largest (600" in capsys.readouterr().err
+    assert ("fitting an atlas of charts: its neighbourhood graph is in 2 pieces, the largest 600 "
+            "of 750 points") in capsys.readouterr().err
     vertices = trimesh.load(out, force="mesh").vertices
     in_small = (vertices[:, :2] > 2.0).all(axis=1)
     assert 0.05 < in_small.mean() < 0.5  # both pieces meshed

@@ -9,7 +9,12 @@ from scipy.spatial import procrustes
 from sklearn.base import clone
 
 from reconstruct.embedding import SurfaceEmbedding, landmark_isomap
-from reconstruct.errors import DegenerateCloudError, InvalidInputError, ReconstructionWarning
+from reconstruct.errors import (
+    CloudInPiecesError,
+    DegenerateCloudError,
+    InvalidInputError,
+    ReconstructionWarning,
+)
 from reconstruct.neighbors import (
     choose_n_neighbors,
     classical_mds,
@@ -237,6 +242,11 @@ def test_graph_in_pieces(caplog):
     with pytest.raises(DegenerateCloudError, match="pieces"):
         pieces = [plane(400), plane(350, seed=2) + [4.0, 0, 0], plane(250, seed=3) + [0, 4.0, 0]]
         SurfaceEmbedding().fit(np.vstack(pieces))
+    # how much the other pieces may hold is a parameter (an atlas may take the cloud instead)
+    with pytest.raises(CloudInPiecesError, match="2 pieces; the largest holds only 700") as caught:
+        SurfaceEmbedding(method="isomap", other_pieces=0.2).fit(np.vstack([big, small]))
+    sizes = caught.value.sizes  # largest first (2 outliers of the small piece dropped)
+    assert len(sizes) == 2 and sizes[0] == 700 and 290 < sizes[1] <= 300
 
 
 def test_degenerate_and_bad_input():

@@ -219,3 +219,19 @@ def test_bad_fit_parameters_are_refused_before_any_work(params, message):
 def test_collinear_cloud_is_rejected():
     with pytest.raises(DegenerateCloudError, match="collinear"):
         SurfaceReconstructor().fit(np.outer(np.linspace(0, 1, 100), [1, 2, 3]))
+
+
+def test_a_cloud_of_three_objects_is_meshed_whole():
+    # Three parts on the table, a third of the points each: the embedding refused the cloud
+    # ("the largest holds only 300 of 900 points") and nothing was meshed; the atlas charts
+    # each piece.
+    pieces = [noisy_plane(300, seed=seed) + [4.0 * seed, 0, 0] for seed in range(3)]
+    points = np.vstack(pieces)
+    model = SurfaceReconstructor(max_layers=1, max_neurons=4).fit(points)
+    assert "3 pieces, the largest 300 of 900 points" in model.atlas_reason_
+    vertices = model.mesh_.vertices
+    for seed in range(3):  # each piece meshed where its points are
+        mine = np.abs(vertices[:, 0] - 4.0 * seed) < 2.0
+        assert mine.sum() > 0.2 * len(vertices)
+    with pytest.raises(DegenerateCloudError, match="3 pieces"):  # one chart cannot
+        SurfaceReconstructor(max_layers=1, max_neurons=4, atlas="never").fit(points)

@@ -353,6 +353,12 @@ class AtlasReconstructor(BaseEstimator):
                 chart_samples_, chart_normals, self.points_, self.decomposition_.spacing_,
                 voxel, self.chart_points_, two_layer)
             self.closed_, self.seal_, self.votes_ = sides.closed_, sides.seal_, sides.votes_
+            if sides.mixed_ is not None:
+                warnings.warn(
+                    f"joined closed, {sides.mixed_[1]:.0%} of it as thin shells: its charts "
+                    f"seen from both sides (walls thinner than the noise, or an open "
+                    f"surface) lie between solid parts that face out ({sides.mixed_[0]:.0%}); "
+                    f"closed=False joins it open", ReconstructionWarning, stacklevel=3)
             self.shells_, self.thin_ = sides.shells_, sides.thin_
             self.signs_ = self.signs_ * sides.turns_
             self._probe = sides.probe_

@@ -88,7 +88,8 @@ def stand_on_plate(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
 
 def load_object(name_or_path: str | Path | None = None) -> trimesh.Trimesh:
     """A built-in object by name (``vase``, ``bust``, ``box``, one of `AWKWARD`: ``mug``,
-    ``torus``, ``figurine``, ``hook``, ``sheets``, or of `UNTUNED`: ``chair``, ``knot``) or
+    ``torus``, ``figurine``, ``hook``, ``sheets``, or of `UNTUNED`: ``chair``, ``knot``,
+    ``tray``) or
     any mesh file trimesh reads
     (units: mm), stood on the plate. Raises `ObjectError` with a one-line cause."""
     if name_or_path is not None and not str(name_or_path).strip():

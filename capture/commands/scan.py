@@ -11,7 +11,7 @@ import logging
 log = logging.getLogger("capture.cli")
 #: `sim.objects.BUILT_IN`'s names (the CLI does not import the simulator to list them).
 BUILT_IN_OBJECTS = ("vase", "bust", "box", "mug", "torus", "figurine", "hook", "sheets", "chair",
-                    "knot")
+                    "knot", "tray")
 
 
 def add_parser(subparsers) -> None:

@@ -355,10 +355,11 @@ class AtlasReconstructor(BaseEstimator):
             self.closed_, self.seal_, self.votes_ = sides.closed_, sides.seal_, sides.votes_
             if sides.mixed_ is not None:
                 warnings.warn(
-                    f"joined closed, {sides.mixed_[1]:.0%} of it as thin shells: its charts "
-                    f"seen from both sides (walls thinner than the noise, or an open "
-                    f"surface) lie between solid parts that face out ({sides.mixed_[0]:.0%}); "
-                    f"closed=False joins it open", ReconstructionWarning, stacklevel=3)
+                    f"joined open, but charts holding {sides.mixed_[0]:.0%} of the samples face "
+                    f"out of a volume and {sides.mixed_[1]:.0%} are seen from both sides: if "
+                    f"the object is closed, its walls are thinner than the noise, and "
+                    f"AtlasReconstructor(closed=True) joins them as thin shells",
+                    ReconstructionWarning, stacklevel=3)
             self.shells_, self.thin_ = sides.shells_, sides.thin_
             self.signs_ = self.signs_ * sides.turns_
             self._probe = sides.probe_

@@ -61,16 +61,20 @@ THIN_LATERAL = 1.0
 THIN_POINTS = 25
 #: The cloud is closed when charts facing clearly out hold this share of the join's samples.
 CLOSED_SHARE = 0.5
-#: ... or when they hold this share and the rest is mostly seen from both sides (`MIXED`): walls
-#: thinner than the noise charted once, between solid parts that face out, as a mug's 4 mm wall
-#: at σ 1 % of the diagonal (1.7 mm; 20k points: its walls charted through their middle, the
-#: floor and handle facing out, 17-19 % of the samples). Joined open, such a cloud was a ragged
-#: sheet (mug: F 0.38, Chamfer 1.57 against Poisson's 0.78 and 1.05); joined closed, the
-#: two-sided charts as thin shells, F 0.92, Chamfer 0.91. Open surfaces had none facing out
-#: (a relief, an open hemisphere at σ 0.5 % and 1 %: 0.00) and a solid bowl, all walls, too.
+#: When charts facing out hold less than `CLOSED_SHARE` but this share at least, and those seen
+#: from both sides most of the rest (`MIXED`), at the first seal, the cloud is joined open and
+#: said to be *mixed*: walls thinner than the noise, charted once between solid parts that face
+#: out, look like this, as a mug's 4 mm wall at σ 1 % of the diagonal (1.7 mm; 20k points: the
+#: walls charted through their middle, floor and handle facing out, 17 % of the samples; joined
+#: open, F 0.38, Chamfer 1.57 against Poisson's 0.80 and 1.01; joined closed, the two-sided
+#: charts as thin shells, F 0.92, Chamfer 0.91), but so does an open sheet beside a solid part
+#: (a plate with a handle, 12 %; a sheet with a 4 mm deep pleat, 40 %), which joined closed so
+#: lost its accuracy (Chamfer 0.30 -> 1.14, 0.21 -> 0.89). Open surfaces alone had none facing
+#: out at the first seal (a relief, an open hemisphere, three faces of a cube). Said, not
+#: decided: ``closed=True`` joins such a cloud closed.
 MIXED_SHARE = 0.1
-#: ... the share of the samples that the charts facing out and those seen from both sides must
-#: hold together for that.
+#: ... the share of the samples that the charts facing out and those seen from both sides hold
+#: together then.
 MIXED = 0.8
 #: A chart is a thin part charted on both its faces, fitted between them (two plates 1.5 mm thick
 #: and 3 mm apart at σ 0.3 mm, 20k points, spacing 1.8 mm: each plate one chart, its mesh
@@ -225,8 +229,9 @@ class ChartSides:
     Parameters: ``band`` the join's band (voxels; ``2 band`` is tried as the seal too);
     ``closed`` None to decide, or True / False to impose.
 
-    Fitted: ``closed_`` bool, ``mixed_`` the (outward, two-sided) shares of the samples when
-    it is closed by `MIXED_SHARE` (else None), ``seal_`` the exterior grid's band, ``probe_`` its
+    Fitted: ``closed_`` bool, ``mixed_`` the (outward, two-sided) shares of the samples of a
+    cloud joined open that may be closed with walls thinner than the noise (`MIXED_SHARE`;
+    else None), ``seal_`` the exterior grid's band, ``probe_`` its
     `join.ExteriorProbe`, ``votes_`` (c,) in [−1, 1],
     ``turns_`` (c,) ±1 turning each chart's normals to face out, ``shells_`` (c,) bool charts
     joined as a thin closed shell (two-sided, or thin), ``thin_`` (c,) bool thin parts whose
@@ -253,26 +258,22 @@ class ChartSides:
         left_out = (uncharted_points(points, everything, spacing, tree)
                     if filled and self.closed is not False else None)
         total = max(sizes.sum(), 1.0)
-        tried = []
+        first = None  # the shares facing out and seen from both sides at the first seal
         for seal in (self.band, 2 * self.band):
             probe = ExteriorProbe(everything, voxel, seal, left_out)
             votes, two_sided = exterior_votes(chart_samples, chart_normals, voxel,
                                               probe=probe)
             outward = np.abs(votes) >= VOTE_LIMIT
-            shares = (sizes[outward].sum() / total,
-                      sizes[~outward & (two_sided >= VOTE_LIMIT)].sum() / total)
-            tried.append((seal, probe, votes, two_sided, outward, shares))
-            closed = bool(shares[0] >= CLOSED_SHARE)
+            closed = bool(sizes[outward].sum() >= CLOSED_SHARE * total)
+            if first is None:  # (the wider seal closes the concave side of open surfaces)
+                first = (sizes[outward].sum() / total,
+                         sizes[~outward & (two_sided >= VOTE_LIMIT)].sum() / total)
             if self.closed is not None:
                 closed = bool(self.closed)
             if closed or self.closed is not None:
                 break
-        self.mixed_ = None
-        if not closed and self.closed is None:  # solid parts among walls seen from both sides
-            mixed = [t for t in tried if t[-1][0] >= MIXED_SHARE and sum(t[-1]) >= MIXED]
-            if mixed:  # (else the last seal's, as the loop left them)
-                seal, probe, votes, two_sided, outward, self.mixed_ = mixed[0]
-                closed = True
+        self.mixed_ = (first if not closed and self.closed is None
+                       and first[0] >= MIXED_SHARE and sum(first) >= MIXED else None)
         self.closed_, self.votes_, self.seal_, self.probe_ = closed, votes, seal, probe
         self.turns_ = np.ones(len(chart_samples))
         self.shells_ = np.zeros(len(chart_samples), bool)

@@ -98,6 +98,10 @@ def _most_central(graph, core: np.ndarray) -> int:
     return int(core[np.argmin(both + 1e-9 * from_a)])
 
 
+#: Pieces of the graph smaller than this belong to no chart (stray points).
+MIN_CHART_POINTS = 50
+
+
 class ChartDecomposition(BaseEstimator):
     """Overlapping disc-like charts of a surface cloud (n, 3).
 
@@ -116,7 +120,8 @@ class ChartDecomposition(BaseEstimator):
     ``spacing_`` median point spacing, ``n_charts_``.
     """
 
-    def __init__(self, chart_size: int = 2500, overlap: float = 4.0, min_points: int = 50,
+    def __init__(self, chart_size: int = 2500, overlap: float = 4.0,
+                 min_points: int = MIN_CHART_POINTS,
                  max_angle: float = 70.0, graph: SheetGraph | None = None,
                  random_state: int | None = 0):
         self.chart_size = chart_size

@@ -73,7 +73,8 @@ class SurfaceEmbedding(BaseEstimator):
     remove_outliers : drop statistical outliers first (`statistical_outlier_mask`).
     other_pieces : the share of the points that the graph's pieces other than the largest may
         hold: the largest is embedded (with a warning when there are others);
-        `CloudInPiecesError` beyond it.
+        `CloudInPiecesError` beyond it. Pieces under ``min_piece`` points (stray points) do not
+        count.
     random_state : seed of the landmark sampling and the eigensolvers.
 
     Fitted attributes: ``embedding_`` (m, 2) float64 in the cloud's length unit (geodesic
@@ -93,6 +94,7 @@ class SurfaceEmbedding(BaseEstimator):
         n_landmarks: int | None = None,
         remove_outliers: bool = True,
         other_pieces: float = 0.5,
+        min_piece: int = 1,
         random_state: int | None = 0,
     ):
         self.method = method
@@ -100,6 +102,7 @@ class SurfaceEmbedding(BaseEstimator):
         self.n_landmarks = n_landmarks
         self.remove_outliers = remove_outliers
         self.other_pieces = other_pieces
+        self.min_piece = min_piece
         self.random_state = random_state
 
     def fit(self, points, y=None) -> SurfaceEmbedding:
@@ -221,9 +224,10 @@ class SurfaceEmbedding(BaseEstimator):
         labels, sizes = component_sizes(graph)
         largest, total = int(sizes.max()), int(sizes.sum())
         if len(sizes) > 1:
-            if total - largest > self.other_pieces * total:
+            others = sizes[sizes >= self.min_piece].sum() - largest
+            if others > self.other_pieces * total:
                 raise CloudInPiecesError(
-                    f"neighbourhood graph has {len(sizes)} pieces; the largest holds only "
+                    f"neighbourhood graph has {len(sizes)} pieces; the largest holds "
                     f"{largest} of {total} points", np.sort(sizes)[::-1]
                 )
             warnings.warn(

@@ -23,6 +23,9 @@ class CloudInPiecesError(DegenerateCloudError):
         super().__init__(message)
         self.sizes = sizes
 
+    def __reduce__(self):  # (a worker's error is pickled back to its parent)
+        return type(self), (str(self), self.sizes)
+
 
 class FitError(ReconstructionError, RuntimeError):
     """A numeric step failed on valid input (embedding, training, spline fit)."""

@@ -25,6 +25,7 @@ from sklearn.base import BaseEstimator, clone
 
 from .alignment import align_to
 from .boundary import MultiDepthBoundary, PCABoundary, boundary_geometry
+from .charts import MIN_CHART_POINTS
 from .embedding import SurfaceEmbedding
 from .errors import (
     CloudInPiecesError,
@@ -304,11 +305,13 @@ class SurfaceReconstructor(BaseEstimator):
 
     def _embedding_estimator(self, n_neighbors, may_chart: bool = False) -> SurfaceEmbedding:
         """The embedding step; one that ``may_chart`` (an atlas may follow) refuses a cloud
-        whose graph's pieces other than the largest hold over `MISSED_LIMIT` of it (several
-        objects: one chart of the largest would leave them out, and three of a third each
-        were refused outright) with `CloudInPiecesError`."""
+        whose graph's pieces other than the largest, of an atlas chart's points at least
+        (`MIN_CHART_POINTS`: it leaves smaller ones out too), hold over `MISSED_LIMIT` of it
+        (several objects: one chart of the largest would leave them out, and three of a third
+        each were refused outright) with `CloudInPiecesError`."""
         return SurfaceEmbedding(method=self.embedding, n_neighbors=n_neighbors,
                                 other_pieces=MISSED_LIMIT if may_chart else 0.5,
+                                min_piece=MIN_CHART_POINTS if may_chart else 1,
                                 random_state=self.random_state)
 
     def _check_embedded(self, embedded: Embedded, points, warm_start) -> None:

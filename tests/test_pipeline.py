@@ -7,7 +7,14 @@ import pytest
 import trimesh
 
 from reconstruct.boundary import MultiDepthBoundary
-from reconstruct.errors import DegenerateCloudError, FitError, InvalidInputError, NotFittedError
+from reconstruct.errors import (
+    CloudInPiecesError,
+    DegenerateCloudError,
+    FitError,
+    InvalidInputError,
+    NotFittedError,
+    ReconstructionWarning,
+)
 from reconstruct.pipeline import SurfaceReconstructor
 
 FAST = {"max_layers": 1, "max_neurons": 8}
@@ -235,3 +242,24 @@ def test_a_cloud_of_three_objects_is_meshed_whole():
         assert mine.sum() > 0.2 * len(vertices)
     with pytest.raises(DegenerateCloudError, match="3 pieces"):  # one chart cannot
         SurfaceReconstructor(max_layers=1, max_neurons=4, atlas="never").fit(points)
+
+
+def test_stray_pieces_smaller_than_a_chart_leave_one_chart():
+    # two clumps of 30 points beside a plane of 3,000 (2 %): the atlas leaves pieces under
+    # its charts' 50 points out too, so it was fitted for nothing (5.5 s against 1.6 s)
+    rng = np.random.default_rng(0)
+    clumps = [rng.normal(centre, 0.02, (30, 3)) for centre in ([0, 0, 1.0], [0.5, 0, 1.0])]
+    points = np.vstack([noisy_plane(3000), *clumps])
+    with pytest.warns(ReconstructionWarning, match="3 pieces; reconstructing the largest"):
+        model = SurfaceReconstructor(max_layers=1, max_neurons=4).fit(points)
+    assert not hasattr(model, "atlas_")
+
+
+def test_a_cloud_in_pieces_is_told_across_processes():
+    # a worker's error comes back pickled (an error whose __init__ takes its sizes broke the
+    # pool: "A result has failed to un-serialize")
+    import pickle
+
+    error = CloudInPiecesError("neighbourhood graph has 2 pieces", np.array([7, 3]))
+    again = pickle.loads(pickle.dumps(error))
+    assert str(again) == str(error) and again.sizes.tolist() == [7, 3]

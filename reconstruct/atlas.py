@@ -61,6 +61,7 @@ from .errors import (
     NotFittedError,
     ReconstructionWarning,
 )
+from .faithfulness import LAYERED_KURTOSIS, residual_kurtosis
 from .io import one_line, read_state, write_state
 from .join import (
     ExteriorProbe,
@@ -351,8 +352,14 @@ class AtlasReconstructor(BaseEstimator):
                 self.points_, voxel))
             sides = ChartSides(band=self.band, closed=self.closed).fit(
                 chart_samples_, chart_normals, self.points_, self.decomposition_.spacing_,
-                voxel, self.chart_points_, two_layer)
+                voxel, self.chart_points_, two_layer, layered=self._layered_charts)
             self.closed_, self.seal_, self.votes_ = sides.closed_, sides.seal_, sides.votes_
+            if sides.layered_ is not None:
+                warnings.warn(
+                    f"joined closed, with thin shells: charts holding {sides.layered_:.0%} of "
+                    f"the samples are seen from both sides with their points in two layers "
+                    f"(walls thinner than the noise); closed=False joins it open",
+                    ReconstructionWarning, stacklevel=3)
             if sides.mixed_ is not None:
                 warnings.warn(
                     f"joined open, but charts holding {sides.mixed_[0]:.0%} of the samples face "
@@ -407,6 +414,12 @@ class AtlasReconstructor(BaseEstimator):
             warnings.warn("the cloud looks closed (its charts face out of one volume) but the "
                           "joined mesh is not watertight", ReconstructionWarning, stacklevel=3)
         self.timings_["join"] = time.perf_counter() - started
+
+    def _layered_charts(self) -> np.ndarray:
+        """(c,) bool: the charts whose points lie in two layers about their mesh
+        (`faithfulness.LAYERED_KURTOSIS`)."""
+        return np.array([residual_kurtosis(self._chart_mesh(i), self.points_[np.asarray(m)])
+                         < LAYERED_KURTOSIS for i, m in enumerate(self.chart_points_)])
 
     def _uncharted_tracker(self) -> UnchartedTracker:
         """The closed join's `UnchartedTracker` of the charted points, kept between re-meshes."""

@@ -61,20 +61,21 @@ THIN_LATERAL = 1.0
 THIN_POINTS = 25
 #: The cloud is closed when charts facing clearly out hold this share of the join's samples.
 CLOSED_SHARE = 0.5
-#: When charts facing out hold less than `CLOSED_SHARE` but this share at least, and those seen
-#: from both sides most of the rest (`MIXED`), at the first seal, the cloud is joined open and
-#: said to be *mixed*: walls thinner than the noise, charted once between solid parts that face
-#: out, look like this, as a mug's 4 mm wall at σ 1 % of the diagonal (1.7 mm; 20k points: the
-#: walls charted through their middle, floor and handle facing out, 17 % of the samples; joined
-#: open, F 0.38, Chamfer 1.57 against Poisson's 0.80 and 1.01; joined closed, the two-sided
-#: charts as thin shells, F 0.92, Chamfer 0.91), but so does an open sheet beside a solid part
-#: (a plate with a handle, 12 %; a sheet with a 4 mm deep pleat, 40 %), which joined closed so
-#: lost its accuracy (Chamfer 0.30 -> 1.14, 0.21 -> 0.89). Open surfaces alone had none facing
-#: out at the first seal (a relief, an open hemisphere, three faces of a cube). Said, not
-#: decided: ``closed=True`` joins such a cloud closed.
-MIXED_SHARE = 0.1
-#: ... the share of the samples that the charts facing out and those seen from both sides hold
-#: together then.
+#: A cloud is closed too when charts seen from both sides whose points lie in two layers about
+#: their mesh (`faithfulness.LAYERED_KURTOSIS`: walls thinner than the noise, sampled on both
+#: faces and charted once, through their middle) hold this share of the samples, with charts
+#: facing out (`MIXED_SHARE`): they are joined as thin shells. A mug's 4 mm wall at σ 1 % of the
+#: diagonal (1.7 mm; 20k points): 51 % layered, 17 % facing out; joined open, F 0.38 and
+#: Chamfer 1.57 against Poisson's 0.80 and 1.01. A tray's 2 mm walls at σ 0.5 % (0.72 mm):
+#: 71 %, 9 %; open, F 0.96 and Chamfer 0.86 against 0.94 and 0.63. Open clouds: a relief, a
+#: plate with a handle, a pleated sheet, an open corner, a mug on a table top: 0-4 % layered.
+LAYERED_SHARE = 0.25
+#: The share of the samples that charts facing out must hold for the cloud to be closed by its
+#: layered charts, or, when they are not layered but seen from both sides (`MIXED` with those),
+#: to be said to be *mixed*: joined open with a warning, as an open sheet beside a solid part
+#: (a plate with a handle: 12 % facing out, 87 % two-sided; joined closed, Chamfer 0.30 -> 1.14)
+#: looks like a closed object with walls thinner than the noise whose layers do not show.
+MIXED_SHARE = 0.05
 MIXED = 0.8
 #: A chart is a thin part charted on both its faces, fitted between them (two plates 1.5 mm thick
 #: and 3 mm apart at σ 0.3 mm, 20k points, spacing 1.8 mm: each plate one chart, its mesh
@@ -229,9 +230,10 @@ class ChartSides:
     Parameters: ``band`` the join's band (voxels; ``2 band`` is tried as the seal too);
     ``closed`` None to decide, or True / False to impose.
 
-    Fitted: ``closed_`` bool, ``mixed_`` the (outward, two-sided) shares of the samples of a
-    cloud joined open that may be closed with walls thinner than the noise (`MIXED_SHARE`;
-    else None), ``seal_`` the exterior grid's band, ``probe_`` its
+    Fitted: ``closed_`` bool, ``layered_`` the share of the samples in layered charts seen
+    from both sides when they closed the cloud (`LAYERED_SHARE`; else None), ``mixed_`` the
+    (outward, two-sided) shares of a cloud joined open that may be closed with walls thinner
+    than the noise (`MIXED`; else None), ``seal_`` the exterior grid's band, ``probe_`` its
     `join.ExteriorProbe`, ``votes_`` (c,) in [−1, 1],
     ``turns_`` (c,) ±1 turning each chart's normals to face out, ``shells_`` (c,) bool charts
     joined as a thin closed shell (two-sided, or thin), ``thin_`` (c,) bool thin parts whose
@@ -243,13 +245,15 @@ class ChartSides:
         self.closed = closed
 
     def fit(self, chart_samples, chart_normals, points, spacing: float, voxel: float,
-            chart_points, two_layer=None) -> ChartSides:
+            chart_points, two_layer=None, layered=None) -> ChartSides:
         """chart_samples, chart_normals : c arrays (m_i, 3) of the joined samples and their
         normals as the charts are oriented now; points : (n, 3) the input cloud; spacing : its
         median spacing; voxel : the join's grid spacing; chart_points : c index arrays into
         ``points``, each chart's points; two_layer : (c,) bool charts fitted between the two
         faces of a thin part (`two_layer_charts`; None: none), joined in a closed cloud as
-        thin parts. Returns self."""
+        thin parts; layered : a callable giving (c,) bool, the charts whose points lie in two
+        layers about their mesh (`faithfulness.LAYERED_KURTOSIS`), asked only when the votes
+        leave the cloud open (None: none). Returns self."""
         sizes = np.array([len(s) for s in chart_samples], float)
         filled = [s for s in chart_samples if len(s)]
         everything = np.concatenate(filled) if filled else np.zeros((0, 3))
@@ -258,22 +262,33 @@ class ChartSides:
         left_out = (uncharted_points(points, everything, spacing, tree)
                     if filled and self.closed is not False else None)
         total = max(sizes.sum(), 1.0)
-        first = None  # the shares facing out and seen from both sides at the first seal
+        tried = []
         for seal in (self.band, 2 * self.band):
             probe = ExteriorProbe(everything, voxel, seal, left_out)
             votes, two_sided = exterior_votes(chart_samples, chart_normals, voxel,
                                               probe=probe)
             outward = np.abs(votes) >= VOTE_LIMIT
+            tried.append((seal, probe, votes, two_sided, outward))
             closed = bool(sizes[outward].sum() >= CLOSED_SHARE * total)
-            if first is None:  # (the wider seal closes the concave side of open surfaces)
-                first = (sizes[outward].sum() / total,
-                         sizes[~outward & (two_sided >= VOTE_LIMIT)].sum() / total)
             if self.closed is not None:
                 closed = bool(self.closed)
             if closed or self.closed is not None:
                 break
-        self.mixed_ = (first if not closed and self.closed is None
-                       and first[0] >= MIXED_SHARE and sum(first) >= MIXED else None)
+        self.layered_ = self.mixed_ = None
+        if not closed and self.closed is None:
+            # at the first seal (the wider one closes the concave side of open surfaces)
+            first_outward, first_two_sided = tried[0][4], tried[0][3]
+            facing = sizes[first_outward].sum() / total
+            both = ~first_outward & (first_two_sided >= VOTE_LIMIT)
+            if facing >= MIXED_SHARE and facing + sizes[both].sum() / total >= MIXED:
+                walls = both & np.asarray(layered() if callable(layered) else
+                                          np.zeros(len(sizes), bool) if layered is None
+                                          else layered, bool)
+                if sizes[walls].sum() >= LAYERED_SHARE * total:
+                    closed, self.layered_ = True, sizes[walls].sum() / total
+                    seal, probe, votes, two_sided, outward = tried[0]
+                else:
+                    self.mixed_ = (facing, sizes[both].sum() / total)
         self.closed_, self.votes_, self.seal_, self.probe_ = closed, votes, seal, probe
         self.turns_ = np.ones(len(chart_samples))
         self.shells_ = np.zeros(len(chart_samples), bool)

@@ -37,12 +37,14 @@ from .errors import (
 )
 from .faithfulness import (
     BRIDGE_LIMIT,
+    LAYERED_KURTOSIS,
     MISSED_LIMIT,
     UNEXPLAINED_LIMIT,
     bridged_share,
     explained_distance,
     missed_region,
     neighbour_preservation,
+    residual_kurtosis,
     unexplained_fraction,
 )
 from .io import one_line, read_state, write_state
@@ -460,7 +462,9 @@ class SurfaceReconstructor(BaseEstimator):
         ``layers`` and ``k`` (same density, same K: rough 20k, 39 charts, 1.5 s of K choices
         saved). Before the final fits, on the searched net's mesh, twice the limit counts (the
         final fits explain more; the holes spanned are the outline's, the same): rough 20k turns
-        to an atlas 6 s sooner."""
+        to an atlas 6 s sooner. Or its points lie in two layers about it (`LAYERED_KURTOSIS`):
+        the walls of a thin solid meshed through their middle, which the atlas joins closed as
+        thin shells (`reconstruct.chart_sides`)."""
         if unexplained > limit:
             return points, "one chart leaves too many points unexplained", None, None
         if missed is not None and missed[0] > MISSED_LIMIT:  # a corner cut off: a disc
@@ -468,6 +472,10 @@ class SurfaceReconstructor(BaseEstimator):
             return points, f"one chart's mesh misses a region of the data ({where})", layers, k
         if bridged_share(self.mesh_, self.points_) > BRIDGE_LIMIT:
             return self.points_, "one chart's mesh spans holes in the data", layers, k
+        kurtosis = residual_kurtosis(self.mesh_, self.points_)
+        if kurtosis < LAYERED_KURTOSIS:  # the atlas joins such walls as thin shells
+            return points, (f"its points lie in two layers about one chart's mesh (residual "
+                            f"kurtosis {kurtosis:.2f}): walls thinner than the noise"), layers, k
         return None
 
     def _new_atlas(self):

@@ -67,7 +67,10 @@ TWO_LAYER_KURTOSIS = 2.0
 #: tray's 2 mm walls at σ 0.72 mm, one chart: 2.26; a mug's 4 mm wall at σ 1.7 mm: its charts
 #: 2.17-2.6). One layer of Gaussian noise: the disc-like shapes of bench.quality, one chart at
 #: 1.6k and 20k points, σ 0.5 % and 1 %: 2.75-3.17; the relief's charts 2.83-3.38; open sheets
-#: beside solid parts 3.16 or more.
+#: beside solid parts 3.16 or more. But one layer of uniform noise gives 1.8, and quantised
+#: depth 2.0-2.4 (a terrain rounded to steps of 2σ: 2.24): a one-chart mesh under this is said,
+#: not sent to the atlas (`SurfaceReconstructor`), and an atlas closes a cloud on its layered
+#: charts only beside charts facing out (`reconstruct.chart_sides.LAYERED_SHARE`).
 LAYERED_KURTOSIS = 2.5
 #: Largest share of a mesh's adjacent face pairs folded back onto each other (> 120°).
 FOLD_LIMIT = 0.02

@@ -719,6 +719,22 @@ def test_solid_parts_beside_charts_seen_from_both_sides_are_said_to_be_mixed():
     assert box_only.closed_ and len(asked) == 1  # asked only when the votes leave it open
 
 
+def test_the_atlas_asks_its_charts_whether_their_points_lie_in_two_layers(sphere_atlas,
+                                                                          monkeypatch):
+    points, atlas = sphere_atlas
+    given = {}
+    original = ChartSides.fit
+
+    def fit(self, *args, **kwargs):
+        given.update(kwargs)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(ChartSides, "fit", fit)
+    atlas._join()
+    layered = given["layered"]()
+    assert layered.shape == (len(atlas.charts_),) and not layered.any()  # one layer of noise
+
+
 def test_a_closed_clouds_two_layer_chart_is_joined_as_a_thin_part():
     points, normals, side = box_faces()
     chart_points = [np.flatnonzero(side == k) for k in np.unique(side)]

@@ -548,17 +548,19 @@ class SurfaceReconstructor(BaseEstimator):
                           "missed_region_ says where)", ReconstructionWarning, stacklevel=3)
         # Said, not acted on: one layer of uniform or quantised noise (a depth camera's steps)
         # flattens the residuals as much as two layers do (a terrain with uniform noise: 1.83;
-        # sent to the atlas, its Chamfer-L1 0.0013 -> 0.0043 and 3 times the time; and the
-        # neighbours of a point in 3D lie on its side of the mesh in both, once the noise is
-        # wider than the spacing: a plane with uniform noise 0.81, two layers 0.87-0.97).
+        # sent to the atlas, its Chamfer-L1 0.0013 -> 0.0043 and 3 times the time). Nor do a
+        # point's nearest neighbours in 3D tell them apart: they lie on its side of the mesh in
+        # both once the noise is wider than the spacing (correlation of a residual with its 6
+        # neighbours' mean: a plane with uniform noise 0.81, two layers 0.87-0.97).
         kurtosis = residual_kurtosis(self.mesh_, self.points_)
         if kurtosis < LAYERED_KURTOSIS:
             warnings.warn(
                 f"the points lie in two layers about the mesh, or their noise is not Gaussian "
                 f"(residual kurtosis {kurtosis:.2f}, one Gaussian layer about 3): a closed "
                 f"object with walls thinner than the noise is meshed through their middle as "
-                f"one open sheet (an atlas, atlas='always', joins them closed, as thin shells, "
-                f"where solid parts face out)", ReconstructionWarning, stacklevel=3)
+                f"one open sheet (an atlas, atlas='always' or --atlas always, joins them "
+                f"closed, as thin shells, where solid parts face out)",
+                ReconstructionWarning, stacklevel=3)
 
     def remesh(self, **params) -> trimesh.Trimesh:
         """Re-mesh with new ``lam``, ``depth``, ``n_corners``, ``boundary`` or ``grid_spacing``

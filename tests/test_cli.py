@@ -136,6 +136,22 @@ def test_the_simulated_turntable_serves_another_process_on_a_pty(tmp_path):
     assert not link.exists()  # the link goes with the simulator
 
 
+def test_the_atlas_can_be_asked_for(tmp_path, capsys):
+    # a closed object with walls thinner than the noise is one open sheet to one chart (said);
+    # --atlas always fits the atlas, which joins such walls closed
+    rng = np.random.default_rng(0)
+    plate = np.column_stack([rng.uniform(-1, 1, (600, 2)), rng.normal(0, 0.01, 600)])
+    np.savetxt(tmp_path / "plate.xyz", plate)
+    args = ["reconstruct", str(tmp_path / "plate.xyz"), "-o", str(tmp_path / "m.ply"),
+            "--max-layers", "1", "--max-neurons", "4"]
+    assert main([*args, "--atlas", "always"]) == 0
+    assert "fitting an atlas of charts: asked for" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as refused:
+        main([*args, "--atlas", "sometimes"])
+    assert refused.value.code == 2
+    assert "invalid choice: 'sometimes'" in capsys.readouterr().err
+
+
 def test_a_cloud_in_two_pieces_meshes_both(tmp_path, capsys):
     # One chart would embed the largest piece only: the cloud goes to the atlas (said in one
     # line), which meshes both: no piece of the data is dropped.

@@ -88,6 +88,11 @@ def add_parser(subparsers) -> None:
         "--max-points", type=_max_points, default=MAX_POINTS, metavar="N|all",
         help=f"fit one chart on a random N of a denser cloud's points (default {MAX_POINTS}; "
         "its mesh has about as many vertices), or on all")
+    parser.add_argument(
+        "--atlas", choices=("auto", "never", "always"), default="auto",
+        help="fit an atlas of charts when one chart cannot hold the cloud (auto, default), "
+        "never (one chart, with a warning), or always (a closed object whose walls are "
+        "thinner than the noise: one chart meshes them as one open sheet)")
     parser.add_argument("--save", metavar="STATE", help="also save the state for `remesh`")
     parser.set_defaults(run=run)
 
@@ -115,7 +120,8 @@ def run(args) -> int:
     check_mesh_path(args.output)  # fail before the long work, not after
     points = read_points(args.input)
     log.info("read %d points from %s", len(points), args.input)
-    model = reconstructor_from_args(args).set_params(max_points=args.max_points).fit(points)
+    model = reconstructor_from_args(args).set_params(max_points=args.max_points,
+                                                     atlas=args.atlas).fit(points)
     write_mesh(model.mesh_, args.output)
     log.info(
         "wrote %s (%d vertices, %d faces)",

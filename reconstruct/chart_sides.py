@@ -282,9 +282,7 @@ class ChartSides:
             facing = sizes[first_outward].sum() / total
             both = ~first_outward & (first_two_sided >= VOTE_LIMIT)
             if facing >= MIXED_SHARE and facing + sizes[both].sum() / total >= MIXED:
-                walls = both & np.asarray(layered() if callable(layered) else
-                                          np.zeros(len(sizes), bool) if layered is None
-                                          else layered, bool)
+                walls = both & (False if layered is None else np.asarray(layered(), bool))
                 if sizes[walls].sum() >= LAYERED_SHARE * total:
                     closed, self.layered_ = True, sizes[walls].sum() / total
                     seal, probe, votes, two_sided, outward = tried[0]

@@ -224,8 +224,8 @@ class SurfaceEmbedding(BaseEstimator):
         labels, sizes = component_sizes(graph)
         largest, total = int(sizes.max()), int(sizes.sum())
         if len(sizes) > 1:
-            others = sizes[sizes >= self.min_piece].sum() - largest
-            if others > self.other_pieces * total:
+            rest = np.delete(sizes, np.argmax(sizes))
+            if rest[rest >= self.min_piece].sum() > self.other_pieces * total:
                 raise CloudInPiecesError(
                     f"neighbourhood graph has {len(sizes)} pieces; the largest holds "
                     f"{largest} of {total} points", np.sort(sizes)[::-1]

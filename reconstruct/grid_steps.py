@@ -11,8 +11,9 @@ from scipy.spatial import cKDTree
 
 from .sdf_grid import QUERY_THREADS
 
-#: Nodes of one enclosed pocket that vote on its side (`exterior_of`), evenly taken: its share
-#: in front to about ±1 %. All of a torus's inside (181,604 nodes) took 0.8 s of a 1.9 s re-mesh.
+#: About as many nodes of one enclosed pocket vote on its side (`exterior_of`), evenly taken:
+#: its share in front to about ±1 %. All of a torus's inside (181,604 nodes) took 0.8 s of a
+#: 1.9 s re-mesh.
 VOTERS = 4096
 #: A voter of an enclosed pocket is in front when the planes of its nearest sample and of every
 #: sample within this many voxels farther (of its `VOTE_NEIGHBOURS` nearest) put it there: a
@@ -128,16 +129,20 @@ def exterior_of(free, origin, voxel: float, samples=None, normals=None, tree=Non
 
 def free_pockets(free: np.ndarray) -> tuple:
     """The connected pieces of the ``free`` nodes: (pieces (shape) int, whether each piece
-    (count + 1,; 0: none) touches the grid's border, voters: (nodes (g, 3), piece (g,)) of the
-    enclosed pieces (`pocket_voters`), or None)."""
+    (count + 1,; 0: none) touches the grid's border, voters: (nodes (g, 3), piece (g,), flat
+    index (g,)) of the enclosed pieces (`pocket_voters`), or None)."""
     pieces, count = ndimage.label(free)
     faces = [pieces[0], pieces[-1], pieces[:, 0], pieces[:, -1], pieces[:, :, 0],
              pieces[:, :, -1]]
     border = np.zeros(count + 1, bool)
     border[np.concatenate([f.ravel() for f in faces])] = True
     border[0] = False
-    enclosed = free & ~border[pieces] if count else np.zeros(free.shape, bool)
-    voters = pocket_voters(np.argwhere(enclosed), pieces[enclosed]) if enclosed.any() else None
+    voters = None
+    if not border[1:].all():  # an enclosed piece
+        enclosed = ~border
+        enclosed[0] = False
+        flat = np.flatnonzero(enclosed[pieces.ravel()])
+        voters = pocket_voters(flat, pieces.ravel()[flat], free.shape)
     return pieces, border, voters
 
 
@@ -168,17 +173,31 @@ def pockets_outside(pockets: tuple, front=None) -> np.ndarray:
     return border | (share > 0.5)
 
 
-def pocket_voters(nodes: np.ndarray, label: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """At most `VOTERS` of the ``nodes`` (g, 3) of each pocket ``label`` (g,), every k-th in
-    grid order; returns (nodes, label) of those."""
-    counts = np.bincount(label)
-    order = np.argsort(label, kind="stable")
-    first = np.cumsum(counts) - counts
-    rank = np.arange(len(order)) - first[label[order]]
-    step = -(-counts // VOTERS)
-    keep = order[rank % step[label[order]] == 0]
-    keep.sort()
-    return nodes[keep], label[keep]
+def pocket_voters(flat: np.ndarray, label: np.ndarray, shape) -> tuple:
+    """About `VOTERS` of the nodes ``flat`` ((g,) ascending flat indices into a grid of
+    ``shape``) of each pocket ``label`` (g,), spread evenly and chosen by their place alone
+    (a hash of the index), so that a node stays a voter while its pocket changes elsewhere
+    (its vote is kept between updates); returns (nodes (k, 3), label (k,), flat (k,)) of
+    those, in grid order."""
+    step = -(-np.bincount(label) // VOTERS)
+    if step.max(initial=1) > 1:
+        chosen = _spread(flat) % step[label].astype(np.uint64) == 0
+        flat, label = flat[chosen], label[chosen]
+    return np.column_stack(np.unravel_index(flat, tuple(shape))), label, flat
+
+
+def _spread(flat: np.ndarray) -> np.ndarray:
+    """(g,) uint64: the indices ``flat`` scattered (Fibonacci hashing, the top 32 bits), so
+    that taking those divisible by a step takes nodes evenly, not rows or planes of them."""
+    return (flat.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(32)
+
+
+def union(arrays) -> np.ndarray:
+    """The distinct values of integer ``arrays``, ascending: np.unique of their concatenation,
+    by a merge sort, which takes arrays that come ascending as sorted runs (37,000 flat
+    indices of a mug's re-mesh: 0.2 ms against 6.5 for numpy 2's hashing np.unique)."""
+    values = np.sort(np.concatenate([np.zeros(0, np.int64), *arrays]), kind="stable")
+    return values[np.r_[True, values[1:] != values[:-1]]] if len(values) else values
 
 
 def boxes_round(flat: np.ndarray, shape, margin: int) -> list[tuple[slice, ...]]:

@@ -69,29 +69,24 @@ def changed_rows(old, old_normals, old_tree: cKDTree, samples, normals, toleranc
     if len(samples) == 0 or len(old) == 0:
         return np.ones(len(samples), bool), np.ones(len(old), bool)
     head, tail = equal_ends((old, old_normals, old_tags), (samples, normals, tags))
-    if head or tail:  # a join's samples are its charts' in order: a re-mesh changes a few
-        added, removed = np.zeros(len(samples), bool), np.zeros(len(old), bool)
-        middle, old_middle = slice(head, len(samples) - tail), slice(head, len(old) - tail)
-        if len(old) - tail > head:
-            added[middle], removed[old_middle] = changed_rows(
-                old[old_middle], old_normals[old_middle], cKDTree(old[old_middle]),
-                samples[middle], normals[middle], tolerance, voxel,
-                None if tags is None else old_tags[old_middle],
-                None if tags is None else tags[middle])
-        else:
-            added[middle] = True
-        return added, removed
-    gap, match = old_tree.query(samples, distance_upper_bound=2 * tolerance)
-    same = gap <= tolerance
-    same[same] = np.all(np.abs(normals[same] - old_normals[match[same]]) <= tolerance / voxel,
-                        axis=1)
+    # a join's samples are its charts' in order: a re-mesh changes a few; the rows between
+    # the equal ends are matched to the old ones between them (through the old tree: one
+    # matched to an old row outside them counts as added)
+    middle = np.arange(head, len(samples) - tail)
+    gap, match = old_tree.query(samples[middle], distance_upper_bound=2 * tolerance)
+    same = (gap <= tolerance) & (match >= head) & (match < len(old) - tail)
+    match = np.minimum(match, len(old) - 1)
+    same[same] = np.all(np.abs(normals[middle][same] - old_normals[match[same]])
+                        <= tolerance / voxel, axis=1)
     if tags is not None:
-        same[same] = tags[same] == old_tags[match[same]]
+        same[same] = tags[middle][same] == old_tags[match[same]]
     claims = np.bincount(match[same], minlength=len(old))
     same[same] = claims[match[same]] == 1
-    kept = np.zeros(len(old), bool)
+    added, kept = np.zeros(len(samples), bool), np.ones(len(old), bool)
+    added[middle] = ~same
+    kept[head:len(old) - tail] = False
     kept[match[same]] = True
-    return ~same, ~kept
+    return added, ~kept
 
 
 def equal_ends(old: tuple, new: tuple) -> tuple[int, int]:

@@ -175,14 +175,24 @@ def test_data_no_chart_represents_keeps_a_closed_join_whole():
 
 def test_a_large_pocket_votes_through_an_even_subset_of_its_nodes():
     rng = np.random.default_rng(0)
-    label = rng.permutation(np.repeat([1, 2, 3], [10, 3 * VOTERS + 5, 3]))
-    nodes = np.arange(len(label))[:, None].repeat(3, axis=1)
-    kept, kept_label = pocket_voters(nodes, label)
+    shape = (64, 64, 64)
+    flat = np.sort(rng.choice(np.prod(shape), 10 + 3 * VOTERS + 500 + 3, replace=False))
+    label = rng.permutation(np.repeat([1, 2, 3], [10, 3 * VOTERS + 500, 3]))
+    nodes, kept_label, kept = pocket_voters(flat, label, shape)
     counts = np.bincount(kept_label, minlength=4)
     assert counts[1] == 10 and counts[3] == 3  # small pockets: every node
-    assert VOTERS // 2 < counts[2] <= VOTERS
-    assert np.all(np.diff(kept[:, 0]) > 0)
-    np.testing.assert_array_equal(label[kept[:, 0]], kept_label)
+    assert 0.9 < counts[2] / ((3 * VOTERS + 500) / 4) < 1.1  # every 4th, by a hash
+    assert np.all(np.diff(kept) > 0)
+    np.testing.assert_array_equal(label[np.searchsorted(flat, kept)], kept_label)
+    np.testing.assert_array_equal(np.ravel_multi_index(tuple(nodes.T), shape), kept)
+    # taken evenly across the grid, not whole rows or planes of it
+    share = np.bincount(nodes[kept_label == 2, 2] % 4, minlength=4) / counts[2]
+    assert np.all(np.abs(share - 0.25) < 0.05)
+    # a voter stays one while its pocket changes elsewhere, by less than a step's worth of
+    # VOTERS nodes (its vote is kept)
+    others = rng.choice(np.flatnonzero(label == 2), 50, replace=False)
+    _, _, again = pocket_voters(np.delete(flat, others), np.delete(label, others), shape)
+    assert set(again) == set(kept) - set(flat[others])
 
 
 def test_a_closed_join_leaves_no_void_inside_the_object():

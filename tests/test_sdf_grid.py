@@ -136,6 +136,10 @@ def test_changed_rows_finds_a_change_between_unchanged_ends():
         "one normal turned": (old, np.r_[old_normals[:99], -old_normals[99:]],
                               np.arange(100) == 99, [99]),
         "moved within tolerance": (old + 1e-12, old_normals, flags[:100], []),
+        "a row of an end again in the middle": (np.r_[old[:40], old[:1], old[41:]],
+                                                np.r_[old_normals[:40], old_normals[:1],
+                                                      old_normals[41:]],
+                                                np.arange(100) == 40, [40]),
     }
     for name, (samples, normals, added, removed) in cases.items():
         got_added, got_removed = changed_rows(old, old_normals, cKDTree(old), samples, normals,

@@ -146,7 +146,8 @@ class AtlasReconstructor(BaseEstimator):
     part (`reconstruct.chart_sides`), ``closed_``
     whether the cloud was joined as the boundary of a volume (then a mesh that is not
     watertight is warned about); after a `remesh`, ``remesh_counts_``: charts meshed, join
-    samples moved, grid nodes evaluated.
+    samples moved, grid nodes evaluated, charts re-meshed in the worker process
+    (`reconstruct.remesh_worker`; none in a process with ``n_jobs=1``).
     """
 
     def __init__(self, chart_size: int = 2500, overlap: float = 4.0, lam: float = 1.0,

@@ -12,11 +12,13 @@ from concurrent.futures import ThreadPoolExecutor
 
 import trimesh
 
-from .chart_parts import ChartPart, unchanged
+from .chart_fit import n_chart_workers
+from .chart_parts import ChartPart
 from .errors import DegenerateCloudError, FitError, ReconstructionError, ReconstructionWarning
 from .io import one_line
-from .join import kept_mesh, owned
+from .join import kept_mesh
 from .mesh_edges import topology
+from .remesh_worker import MIN_CHARTS, ChartWorker, apply, remesh_chart, shared_worker
 
 log = logging.getLogger(__name__)
 
@@ -29,7 +31,20 @@ REMESH_THREADS = 2
 def remesh_atlas(atlas, params: dict) -> trimesh.Trimesh:
     """`AtlasReconstructor.remesh` of the fitted ``atlas`` with ``params`` (lam, depth, ...):
     sets its ``mesh_``, ``timings_`` ("remesh charts", "join", "remesh") and
-    ``remesh_counts_``, and returns the mesh."""
+    ``remesh_counts_``, and returns the mesh. Half the charts are meshed in a worker process
+    once it holds them (`reconstruct.remesh_worker`), sent after the first re-mesh."""
+    worker = _worker_for(atlas)
+    try:
+        mesh = _remesh(atlas, params, worker)
+        if worker is not None and not worker.sent(atlas):  # for the next re-meshes
+            worker.send(atlas, atlas.reach * atlas.decomposition_.spacing_)
+        return mesh
+    finally:
+        if worker is not None:
+            worker.release()
+
+
+def _remesh(atlas, params: dict, worker: ChartWorker | None) -> trimesh.Trimesh:
     started = time.perf_counter()
     charts = atlas.charts_
     parts = atlas.__dict__.get("_parts")
@@ -39,9 +54,11 @@ def remesh_atlas(atlas, params: dict) -> trimesh.Trimesh:
         atlas._owners = atlas._chart_owners()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ReconstructionWarning)
-        with ThreadPoolExecutor(min(REMESH_THREADS, len(charts))) as pool:
-            fresh = list(pool.map(lambda i: _remesh_chart(
-                atlas, i, None if parts is None else parts[i], params), range(len(charts))))
+        beside = worker is not None and worker.holds(atlas)
+        if beside:
+            fresh = _remesh_beside(worker, atlas, parts, params)
+        else:
+            fresh = _remesh_here(atlas, range(len(charts)), parts, params)
     said = [w for w in caught if issubclass(w.category, ReconstructionWarning)]
     if said:  # one line for the atlas, not one per chart
         warnings.warn(f"{len(said)} of {len(charts)} charts: {said[0].message}",
@@ -62,7 +79,9 @@ def remesh_atlas(atlas, params: dict) -> trimesh.Trimesh:
         atlas.timings_["join"], moved, nodes = 0.0, 0, 0
     atlas.timings_["remesh"] = time.perf_counter() - started
     atlas.remesh_counts_ = {"charts meshed": sum(fresh), "samples moved": moved,
-                            "nodes evaluated": nodes}
+                            "nodes evaluated": nodes,
+                            "charts in the worker": len(worker.theirs(len(charts)))
+                            if beside and not worker.failed else 0}
     log.info("atlas re-meshed: %d of %d charts meshed, %d of %d join samples changed, %d "
              "nodes evaluated (%.0f ms)", sum(fresh), len(charts), moved,
              len(atlas.samples_), nodes, 1000 * atlas.timings_["remesh"])
@@ -86,24 +105,53 @@ def _mesh_stands(atlas) -> bool:
     return True
 
 
+def _worker_for(atlas) -> ChartWorker | None:
+    """The `ChartWorker`, taken for this re-mesh, when ``atlas`` may use it (enough charts, a
+    process that may start one, ``n_jobs`` not 1) and no other re-mesh has it; else None."""
+    if len(atlas.charts_) < MIN_CHARTS or n_chart_workers(atlas.n_jobs) < 1:
+        return None
+    worker = shared_worker()
+    return worker if worker.acquire() else None
+
+
+def _remesh_here(atlas, indices, parts, params: dict) -> list:
+    """`_remesh_chart` of the charts ``indices``, in threads."""
+    indices = list(indices)
+    with ThreadPoolExecutor(max(1, min(REMESH_THREADS, len(indices)))) as pool:
+        return list(pool.map(lambda i: _remesh_chart(
+            atlas, i, None if parts is None else parts[i], params), indices))
+
+
+def _remesh_beside(worker: ChartWorker, atlas, parts, params: dict) -> list:
+    """Re-mesh the worker's charts in it and the others here at the same time; a worker that
+    fails leaves its charts to this process. A chart's error that is not its boundary's (as
+    `_remesh_chart` would raise) is raised."""
+    n = len(atlas.charts_)
+    theirs = worker.theirs(n)
+    asked = worker.submit(atlas, parts, params)
+    ours = sorted(set(range(n)) - set(theirs))
+    fresh = {i: _remesh_chart(atlas, i, None if parts is None else parts[i], params)
+             for i in ours}
+    results = worker.results() if asked else None
+    if results is None:
+        fresh.update(zip(theirs, _remesh_here(atlas, theirs, parts, params), strict=True))
+        return [fresh[i] for i in range(n)]
+    for i, (result, said) in zip(theirs, results, strict=True):
+        for message in said:
+            warnings.warn(message, ReconstructionWarning, stacklevel=2)
+        if isinstance(result, Exception) and not isinstance(result, (FitError,
+                                                                     DegenerateCloudError)):
+            raise result
+        fresh[i] = apply(atlas.charts_[i], params, result)
+    return [fresh[i] for i in range(n)]
+
+
 def _remesh_chart(atlas, index: int, part: ChartPart | None,
                   params: dict) -> bool | ReconstructionError:
     """Re-mesh chart ``index`` with ``params`` unless its ``part`` of the join cannot change
     (`chart_parts.unchanged`); returns whether it was meshed, or the error of a chart whose
     boundary cannot take them (a small chart's spline that a large λ collapses, too few points
     at a depth: the chart keeps its parameters and mesh)."""
-    chart = atlas.charts_[index]
-    test = None
-    if part is not None:  # else not joined since loaded or fitted: nothing to compare with
-        labels, tree = atlas._owners
-        reach = atlas.reach * atlas.decomposition_.spacing_
-
-        def mine(positions):
-            return owned([positions], labels, tree, reach, charts=[index])[0]
-
-        def test(outline, spacing, grid):
-            return unchanged(part, outline, spacing, chart.surface_map_, mine, grid)
-    try:
-        return chart.remesh_unless(test, **params)
-    except (FitError, DegenerateCloudError) as exc:
-        return exc
+    labels_tree = atlas.__dict__.get("_owners")  # else not joined since loaded or fitted
+    return remesh_chart(atlas.charts_[index], index, part if labels_tree else None, params,
+                        labels_tree, atlas.reach * atlas.decomposition_.spacing_)

@@ -13,6 +13,7 @@ import trimesh
 from failing_pools import BrokenPool, LostWorkers
 from joblib import effective_n_jobs
 
+from reconstruct import remesh_worker
 from reconstruct.atlas import AtlasReconstructor
 from reconstruct.chart_fit import fit_charts
 from reconstruct.chart_sides import (
@@ -37,6 +38,11 @@ from reconstruct.mesh_edges import close_small_holes
 from reconstruct.metrics import distance_to_surface, surface_report
 from reconstruct.pipeline import SurfaceReconstructor
 
+
+def fit_workers():
+    """The child processes but the chart re-meshing worker (`reconstruct.remesh_worker`: a
+    daemonic process that a re-mesh keeps for the next ones, which an exiting process stops)."""
+    return [p for p in multiprocessing.active_children() if p.name != remesh_worker.NAME]
 
 def sphere_cloud(n=3000, sigma=0.005, seed=0):
     rng = np.random.default_rng(seed)
@@ -173,7 +179,7 @@ def test_no_chart_worker_outlives_the_fit():
     """A spawned process (the scan engine's pool, a bench case) joins its children when it
     exits: idle chart workers left behind would hold it there."""
     AtlasReconstructor(chart_size=500, n_jobs=2).fit(holed_patch(n=1200))
-    assert multiprocessing.active_children() == []
+    assert fit_workers() == []
 
 
 def test_an_atlas_fit_leaves_other_process_pools_be():
@@ -370,11 +376,11 @@ def test_a_started_atlas_fits_the_same_mesh_and_leaves_no_worker(monkeypatch):
         started.fit(points)
     np.testing.assert_array_equal(plain.mesh_.vertices, started.mesh_.vertices)
     np.testing.assert_array_equal(plain.mesh_.faces, started.mesh_.faces)
-    assert multiprocessing.active_children() == []
+    assert fit_workers() == []
     # begun for other points: those are decomposed afresh, and the same mesh comes out
     other = AtlasReconstructor(chart_size=500, n_jobs=2).start(points[::-1]).fit(points)
     np.testing.assert_array_equal(plain.mesh_.faces, other.mesh_.faces)
-    assert multiprocessing.active_children() == []
+    assert fit_workers() == []
 
 
 def all_embedded_ahead(atlas: AtlasReconstructor) -> AtlasReconstructor:
@@ -403,14 +409,14 @@ def test_charts_embedded_ahead_are_taken_up_with_their_k_only(monkeypatch):
     assert len(started.charts_) == len(plain.charts_)
     np.testing.assert_array_equal(plain.mesh_.vertices, started.mesh_.vertices)
     np.testing.assert_array_equal(plain.mesh_.faces, started.mesh_.faces)
-    assert multiprocessing.active_children() == []
+    assert fit_workers() == []
     # embedded ahead with another K: embedded again with the fit's, the same mesh as without
     other = all_embedded_ahead(
         AtlasReconstructor(n_jobs=2, **{**params, "n_neighbors": 14}).start(points))
     other.set_params(n_neighbors=10).fit(points)
     assert not other.faults_
     np.testing.assert_array_equal(plain.mesh_.faces, other.mesh_.faces)
-    assert multiprocessing.active_children() == []
+    assert fit_workers() == []
 
 
 @pytest.mark.parametrize(("workers", "said"), [
@@ -445,19 +451,19 @@ def test_a_decomposition_begun_in_a_worker_that_died_is_done_here(caplog):
         started.fit(points)
     assert "decomposing in a worker failed (worker killed); decomposing here" in caplog.text
     np.testing.assert_array_equal(plain.mesh_.faces, started.mesh_.faces)
-    assert multiprocessing.active_children() == []
+    assert fit_workers() == []
 
 
 def test_a_cancelled_start_leaves_no_worker():
     atlas = AtlasReconstructor(chart_size=500, n_jobs=2).start(holed_patch(n=1500))
     atlas.cancel()  # at once: the workers are waited for
     atlas.cancel()  # twice: nothing left to drop
-    assert multiprocessing.active_children() == []
+    assert fit_workers() == []
     assert not hasattr(atlas, "mesh_")
     atlas.set_params(n_neighbors=10).start(holed_patch(n=1500))  # while charts are embedded
     wait_for([atlas._started.decomposition])
     atlas.cancel()
-    assert multiprocessing.active_children() == []
+    assert fit_workers() == []
     # once the decomposition is back and the torch import runs: the workers are stopped
     atlas.start(holed_patch(n=1500))
     decomposition, warming = atlas._started.decomposition, atlas._started.warming
@@ -465,7 +471,7 @@ def test_a_cancelled_start_leaves_no_worker():
     while not all(f.running() or f.done() for f in warming):
         time.sleep(0.01)
     atlas.cancel()
-    assert multiprocessing.active_children() == []
+    assert fit_workers() == []
 
 
 def test_bad_points_after_a_start_leave_no_worker():
@@ -473,10 +479,10 @@ def test_bad_points_after_a_start_leave_no_worker():
     bad = np.zeros((1500, 2))  # not (n, 3)
     with pytest.raises(InvalidInputError):
         atlas.fit(bad)
-    assert multiprocessing.active_children() == []
+    assert fit_workers() == []
     with pytest.raises(InvalidInputError):
         atlas.start(bad)
-    assert multiprocessing.active_children() == []
+    assert fit_workers() == []
 
 
 #: Tests whose fit starts chart workers: none start on one core (or in a daemonic process).
@@ -516,10 +522,10 @@ def test_the_atlas_begun_beside_a_one_chart_search_gives_the_same_mesh(monkeypat
     assert taken_up == [True]
     np.testing.assert_array_equal(alone.mesh_.faces, begun.mesh_.faces)
     np.testing.assert_array_equal(alone.mesh_.vertices, begun.mesh_.vertices)
-    assert multiprocessing.active_children() == []
+    assert fit_workers() == []
     one_chart = SurfaceReconstructor(**params).fit(holed_patch(n=1500, hole=0.0))
     assert not hasattr(one_chart, "atlas_")
-    assert multiprocessing.active_children() == []
+    assert fit_workers() == []
 
 
 @NEEDS_A_SPARE_CORE
@@ -545,7 +551,7 @@ def test_workers_warmed_for_a_large_cloud_train_its_final_fits_or_serve_its_atla
         warmed = SurfaceReconstructor(**params).fit(points)
     assert "final fits in worker processes" in caplog.text
     np.testing.assert_array_equal(alone.mesh_.vertices, warmed.mesh_.vertices)
-    assert multiprocessing.active_children() == []
+    assert fit_workers() == []
     taken_up = []
     fit = AtlasReconstructor.fit
 
@@ -557,7 +563,7 @@ def test_workers_warmed_for_a_large_cloud_train_its_final_fits_or_serve_its_atla
     closed = SurfaceReconstructor(**params).fit(sphere_cloud(n=1500))
     assert closed.atlas_reason_.startswith("its embedding's residual variance")
     assert taken_up == [True]
-    assert multiprocessing.active_children() == []
+    assert fit_workers() == []
 
     def search_fails(*_, **__):
         raise FitError("the search failed")
@@ -565,7 +571,7 @@ def test_workers_warmed_for_a_large_cloud_train_its_final_fits_or_serve_its_atla
     monkeypatch.setattr("reconstruct.mlp.AdaptiveMLP.search", search_fails)
     with pytest.raises(FitError, match="search failed"):
         SurfaceReconstructor(**params).fit(points)
-    assert multiprocessing.active_children() == []  # a failed fit's warmed workers stop too
+    assert fit_workers() == []  # a failed fit's warmed workers stop too
 
 
 @NEEDS_A_SPARE_CORE
@@ -581,7 +587,7 @@ def test_the_atlas_begun_beside_a_one_chart_search_serves_an_unexplained_cloud(m
     model = SurfaceReconstructor(max_layers=1, max_neurons=4).fit(points)
     assert model.atlas_reason_ == "unexplained"
     assert taken_up == [True]
-    assert multiprocessing.active_children() == []
+    assert fit_workers() == []
 
 
 def test_thin_spreads_to_small_charts_beside_a_thin_one_only():

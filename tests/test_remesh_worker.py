@@ -1,0 +1,100 @@
+"""Half an atlas's charts re-meshed in a worker process beside this one: the same meshes and
+warnings as in this process alone, and a worker that dies leaves its charts to this one
+(reconstruct.remesh_worker)."""
+
+import logging
+import os
+import signal
+import time
+import warnings
+
+import numpy as np
+import pytest
+
+from reconstruct import atlas_remesh, remesh_worker
+from reconstruct.atlas import AtlasReconstructor
+
+
+def sphere_cloud(n=2000, sigma=0.01, seed=0):
+    rng = np.random.default_rng(seed)
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    return direction + rng.normal(0, sigma * 2 * np.sqrt(3), (n, 3))
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    atlas = AtlasReconstructor(chart_size=400, random_state=0).fit(sphere_cloud())
+    return atlas.save(tmp_path_factory.mktemp("worker") / "sphere.npz")
+
+
+@pytest.fixture
+def worker(monkeypatch):
+    monkeypatch.setattr(remesh_worker, "_worker", None)  # this test's own
+    monkeypatch.setattr(atlas_remesh, "MIN_CHARTS", 2)
+    worker = remesh_worker.shared_worker()
+    yield worker
+    worker.close()
+
+
+def held(worker, atlas, timeout=120.0):
+    stop = time.monotonic() + timeout
+    while not worker.holds(atlas):
+        assert time.monotonic() < stop, "the worker did not take up the charts"
+        time.sleep(0.05)
+
+
+def remeshed(atlas, change):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mesh = atlas.remesh(**change)
+    return mesh, sorted(str(w.message) for w in caught)
+
+
+def test_the_worker_meshes_half_the_charts_as_this_process_would(saved, worker):
+    beside, alone = AtlasReconstructor.load(saved), AtlasReconstructor.load(saved)
+    alone.n_jobs = 1  # no worker
+    assert len(beside.charts_) >= 4
+    for atlas in (beside, alone):
+        atlas.remesh(lam=2.0)
+    assert beside.remesh_counts_["charts in the worker"] == 0  # sent after it
+    held(worker, beside)
+    for change in ({"lam": 0.7}, {"depth": 3}, {"lam": 0.05}, {"lam": 3.0, "depth": 2}):
+        mesh, said = remeshed(beside, change)
+        expected, expected_said = remeshed(alone, change)
+        np.testing.assert_array_equal(mesh.vertices, expected.vertices)
+        np.testing.assert_array_equal(mesh.faces, expected.faces)
+        assert said == expected_said, change  # the worker's charts' warnings passed on
+        assert beside.remesh_counts_["charts in the worker"] == len(beside.charts_) // 2
+        assert alone.remesh_counts_["charts in the worker"] == 0
+        for mine, theirs in zip(beside.charts_, alone.charts_, strict=True):
+            assert (mine.lam, mine.depth) == (theirs.lam, theirs.depth)
+            assert ("mesh_" in vars(mine)) == ("mesh_" in vars(theirs))
+            np.testing.assert_array_equal(mine.outline_, theirs.outline_)
+
+
+def test_a_worker_that_dies_leaves_its_charts_to_this_process(saved, worker, caplog):
+    beside, alone = AtlasReconstructor.load(saved), AtlasReconstructor.load(saved)
+    alone.n_jobs = 1
+    for atlas in (beside, alone):
+        atlas.remesh(lam=2.0)
+    held(worker, beside)
+    os.kill(worker._process.pid, signal.SIGKILL)
+    with caplog.at_level(logging.WARNING, logger="reconstruct.remesh_worker"):
+        mesh, _ = remeshed(beside, {"lam": 0.7})
+    assert "the chart re-meshing worker failed" in caplog.text
+    assert worker.failed and beside.remesh_counts_["charts in the worker"] == 0
+    expected, _ = remeshed(alone, {"lam": 0.7})
+    np.testing.assert_array_equal(mesh.vertices, expected.vertices)
+    mesh, _ = remeshed(beside, {"lam": 3.0})  # and goes on without one
+    expected, _ = remeshed(alone, {"lam": 3.0})
+    np.testing.assert_array_equal(mesh.vertices, expected.vertices)
+    assert worker._process is None
+
+
+def test_an_atlas_fitted_without_workers_keeps_its_charts_here(saved, worker):
+    alone = AtlasReconstructor.load(saved)
+    alone.n_jobs = 1
+    remeshed(alone, {"lam": 2.0})
+    remeshed(alone, {"lam": 0.7})
+    assert not worker.sent(alone) and worker._process is None

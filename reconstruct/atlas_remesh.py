@@ -18,7 +18,14 @@ from .errors import DegenerateCloudError, FitError, ReconstructionError, Reconst
 from .io import one_line
 from .join import kept_mesh
 from .mesh_edges import topology
-from .remesh_worker import MIN_CHARTS, ChartWorker, apply, remesh_chart, shared_worker
+from .remesh_worker import (
+    MIN_CHARTS,
+    ChartWorker,
+    apply,
+    part_given,
+    remesh_chart,
+    shared_worker,
+)
 
 log = logging.getLogger(__name__)
 
@@ -55,10 +62,10 @@ def _remesh(atlas, params: dict, worker: ChartWorker | None) -> trimesh.Trimesh:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ReconstructionWarning)
         beside = worker is not None and worker.holds(atlas)
-        if beside:
-            fresh = _remesh_beside(worker, atlas, parts, params)
+        if beside:  # with the parts of the join taken, but for the charts in ``retake``
+            fresh, retake = _remesh_beside(worker, atlas, parts, params)
         else:
-            fresh = _remesh_here(atlas, range(len(charts)), parts, params)
+            fresh = retake = _remesh_here(atlas, range(len(charts)), parts, params)
     said = [w for w in caught if issubclass(w.category, ReconstructionWarning)]
     if said:  # one line for the atlas, not one per chart
         warnings.warn(f"{len(said)} of {len(charts)} charts: {said[0].message}",
@@ -70,10 +77,11 @@ def _remesh(atlas, params: dict, worker: ChartWorker | None) -> trimesh.Trimesh:
         warnings.warn(f"{len(refused)} of {len(charts)} charts keep their mesh: "
                       f"{one_line(refused[0])}", ReconstructionWarning, stacklevel=3)
         fresh = [exc is True for exc in fresh]
+    retake = [r is True for r in retake]
     atlas.timings_["remesh charts"] = time.perf_counter() - started
     if (any(fresh) or atlas.__dict__.get("_joined_up") != atlas._up_key()
             or not _mesh_stands(atlas)):
-        atlas._join(decide=False, fresh=fresh)
+        atlas._join(decide=False, fresh=retake)
         moved, nodes = atlas._sdf.n_changed_, atlas._sdf.n_evaluated_
     else:  # every chart's part as it was: the same samples, the same mesh
         atlas.timings_["join"], moved, nodes = 0.0, 0, 0
@@ -132,10 +140,13 @@ def _remesh_beside(worker: ChartWorker, atlas, parts, params: dict) -> list:
     ours = sorted(set(range(n)) - set(theirs))
     fresh = {i: _remesh_chart(atlas, i, None if parts is None else parts[i], params)
              for i in ours}
+    if parts is not None:  # the join's parts of ours, taken while the worker takes its own
+        atlas._chart_parts([fresh.get(i) is True for i in range(n)])
     results = worker.results() if asked else None
     if results is None:
         fresh.update(zip(theirs, _remesh_here(atlas, theirs, parts, params), strict=True))
-        return [fresh[i] for i in range(n)]
+        return [fresh[i] for i in range(n)], [fresh[i] is True and i in theirs
+                                              for i in range(n)]
     for i, (result, said) in zip(theirs, results, strict=True):
         for message in said:
             warnings.warn(message, ReconstructionWarning, stacklevel=2)
@@ -143,7 +154,9 @@ def _remesh_beside(worker: ChartWorker, atlas, parts, params: dict) -> list:
                                                                      DegenerateCloudError)):
             raise result
         fresh[i] = apply(atlas.charts_[i], params, result)
-    return [fresh[i] for i in range(n)]
+        if parts is not None and part_given(result) is not None:
+            atlas._parts[i] = part_given(result)
+    return [fresh[i] for i in range(n)], [False] * n
 
 
 def _remesh_chart(atlas, index: int, part: ChartPart | None,

@@ -30,10 +30,10 @@ import warnings
 import numpy as np
 import trimesh
 
-from .chart_parts import ChartPart, unchanged
+from .chart_parts import ChartPart, chart_part, unchanged
 from .errors import DegenerateCloudError, FitError, ReconstructionWarning
 from .io import one_line
-from .join import owned
+from .join import chart_samples, owned, vertex_normals
 
 log = logging.getLogger(__name__)
 
@@ -158,8 +158,8 @@ class ChartWorker:
 
     def results(self) -> list | None:
         """The worker's results of `submit`: per chart (result, warnings said), the result
-        the chart's error or (meshed, what the re-mesh set, the mesh's vertices and faces);
-        None (said once, in the log) when it failed."""
+        the chart's error or (meshed, what the re-mesh set, the mesh's vertices and faces and
+        its `ChartPart`); None (said once, in the log) when it failed."""
         try:
             return self._answer("remeshed")
         except Exception as exc:  # noqa: BLE001 - killed, a broken pipe: mesh here
@@ -241,8 +241,14 @@ def apply(chart, params: dict, result) -> bool | Exception:
         vars(chart).pop(name, None)
     vars(chart).update(fields)
     if meshed:
-        chart.mesh_ = trimesh.Trimesh(*arrays, process=False)
+        chart.mesh_ = trimesh.Trimesh(*arrays[:2], process=False)
     return meshed
+
+
+def part_given(result) -> ChartPart | None:
+    """The chart's part of the join that the worker took with ``result`` (its mesh's), if
+    it meshed."""
+    return None if isinstance(result, Exception) or not result[0] else result[2][2]
 
 
 def _mesh_params() -> tuple:
@@ -319,7 +325,18 @@ def _remesh_held(held: dict, key: int, jobs: list, params: dict) -> list:
             continue
         names = _SET if meshed else _SET[:3]  # (an unmeshed copy's lattice is stale)
         fields = {name: vars(chart)[name] for name in names if name in vars(chart)}
-        arrays = ((np.asarray(chart.mesh_.vertices), np.asarray(chart.mesh_.faces))
-                  if meshed else None)
+        arrays = ((np.asarray(chart.mesh_.vertices), np.asarray(chart.mesh_.faces),
+                   part_of(chart, index, held["owners"], held["reach"])) if meshed else None)
         out.append(((meshed, fields, arrays), said))
     return out
+
+
+def part_of(chart, index: int, owners, reach: float) -> ChartPart:
+    """The `ChartPart` of the atlas's chart ``index``, meshed (as the atlas's join takes it:
+    `AtlasReconstructor._chart_parts`; ``owners``, ``reach`` as for `remesh_chart`)."""
+    labels, tree = owners
+    kept = chart_samples([chart.mesh_], labels, None, reach=reach, tree=tree,
+                         charts=[index])[0]
+    lattice = None if chart.grid_spacing is None else chart.outline_lattice()
+    return chart_part(chart.mesh_.vertices, chart.vertices_2d_, lattice, chart.grid_spacing,
+                      kept, vertex_normals([chart.mesh_], [kept])[0])

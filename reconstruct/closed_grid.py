@@ -100,8 +100,8 @@ class ClosedSDF:
     move and still count as the same in `update`; ``shift`` voxels by which the lattice is
     moved along every axis (a topology that depends on it: `reconstruct.join_alignment`).
 
-    Fitted attributes: ``origin_`` (3,), ``shape_`` (3,), ``values_`` (shape) the smoothed
-    signed grid (positive outside) for marching cubes, ``samples_`` (m, 3), ``normals_``
+    Fitted attributes: ``origin_`` (3,), ``shape_`` (3,), ``values_`` (shape) float32 the
+    smoothed signed grid (positive outside) for marching cubes, ``samples_`` (m, 3), ``normals_``
     (m, 3), ``kept_open_`` (m,), ``tree_``, ``n_changed_`` samples added and removed by the
     last fit or update, ``n_evaluated_`` nodes whose planes it evaluated.
     """
@@ -319,7 +319,10 @@ class ClosedSDF:
         return held
 
     def _smoothed(self, values: np.ndarray, held: np.ndarray) -> np.ndarray:
-        """``values`` opened, smoothed and kept off the level (`_OFF_LEVEL`)."""
+        """``values`` opened, smoothed and kept off the level (`_OFF_LEVEL`), in float32: what
+        marching cubes takes (the opening and the Gaussian read and write half the bytes:
+        mug 22k, a 0.9-million-node grid: 33-39 -> 20 ms a re-mesh)."""
+        values = values.astype(np.float32)
         if _OPEN:
             opened = (grey_opening3(values) if _OPEN == 3
                       else ndimage.grey_opening(values, size=(_OPEN,) * 3))
@@ -327,9 +330,7 @@ class ClosedSDF:
             values = opened
         if _SMOOTH:
             values = ndimage.gaussian_filter(values, _SMOOTH)
-        if not (_OPEN or _SMOOTH):
-            values = values.copy()  # (the caller's, set off the level below)
-        floor = _OFF_LEVEL * self.voxel
+        floor = np.float32(_OFF_LEVEL * self.voxel)
         near_level = np.abs(values) < floor
         values[near_level] = np.where(values[near_level] < 0, -floor, floor)
         return values

@@ -53,7 +53,8 @@ class KeptMarch:
     call marched the whole grid."""
 
     def __call__(self, values: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
-        grid = np.ascontiguousarray(values, np.float32)  # what skimage marches
+        grid = np.array(values, np.float32, order="C")  # what skimage marches, a copy: kept
+        # to compare the next call's with, whose array may be this one changed in place
         kept = self.__dict__.pop("_kept", None)
         result, few = None, True
         if kept is not None and kept["grid"].shape == grid.shape and kept["voxel"] == voxel:

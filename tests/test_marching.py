@@ -84,3 +84,16 @@ def test_changes_all_over_keep_only_the_grid_and_a_local_change_after_them_is_fo
         kept.append("cells" in march._kept)  # what a march to follow needs
     assert kept == [True, False, False, True, True]
     assert followed == [False, False, False, False, True]
+
+
+def test_a_float32_grid_changed_in_place_is_marched_again():
+    """The closed grid is kept in float32, what skimage marches, and updated in place: the
+    march keeps a copy to compare the next call's with, not the caller's array."""
+    values = sphere().astype(np.float32)
+    march = KeptMarch()
+    march(values, 1.0)
+    values[18:24, 20:26, 4:12] += 2.0  # a dent, in place
+    vertices, faces = march(values, 1.0)
+    expected_vertices, expected_faces = whole(values, 1.0)
+    np.testing.assert_array_equal(vertices, expected_vertices)
+    np.testing.assert_array_equal(faces, expected_faces)

@@ -61,11 +61,11 @@ def _remesh(atlas, params: dict, worker: ChartWorker | None) -> trimesh.Trimesh:
         atlas._owners = atlas._chart_owners()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ReconstructionWarning)
-        beside = worker is not None and worker.holds(atlas)
-        if beside:  # with the parts of the join taken, but for the charts in ``retake``
-            fresh, retake = _remesh_beside(worker, atlas, parts, params)
+        if worker is not None and worker.holds(atlas):  # (the join's parts taken, but for
+            fresh, retake, in_worker = _remesh_beside(worker, atlas, parts, params)  # retake)
         else:
             fresh = retake = _remesh_here(atlas, range(len(charts)), parts, params)
+            in_worker = 0
     said = [w for w in caught if issubclass(w.category, ReconstructionWarning)]
     if said:  # one line for the atlas, not one per chart
         warnings.warn(f"{len(said)} of {len(charts)} charts: {said[0].message}",
@@ -88,8 +88,7 @@ def _remesh(atlas, params: dict, worker: ChartWorker | None) -> trimesh.Trimesh:
     atlas.timings_["remesh"] = time.perf_counter() - started
     atlas.remesh_counts_ = {"charts meshed": sum(fresh), "samples moved": moved,
                             "nodes evaluated": nodes,
-                            "charts in the worker": len(worker.theirs(len(charts)))
-                            if beside and not worker.failed else 0}
+                            "charts in the worker": in_worker}
     log.info("atlas re-meshed: %d of %d charts meshed, %d of %d join samples changed, %d "
              "nodes evaluated (%.0f ms)", sum(fresh), len(charts), moved,
              len(atlas.samples_), nodes, 1000 * atlas.timings_["remesh"])
@@ -130,24 +129,34 @@ def _remesh_here(atlas, indices, parts, params: dict) -> list:
             atlas, i, None if parts is None else parts[i], params), indices))
 
 
-def _remesh_beside(worker: ChartWorker, atlas, parts, params: dict) -> list:
-    """Re-mesh the worker's charts in it and the others here at the same time; a worker that
-    fails leaves its charts to this process. A chart's error that is not its boundary's (as
-    `_remesh_chart` would raise) is raised."""
+def _remesh_beside(worker: ChartWorker, atlas, parts, params: dict) -> tuple[list, list, int]:
+    """Re-mesh the charts here from the first and in the worker from the last until the two
+    meet; a worker that fails leaves its charts to this process. A chart's error that is not
+    its boundary's (as `_remesh_chart` would raise) is raised. Returns each chart's result,
+    which charts' parts of the join are to be taken again (the others' were) and how many
+    charts the worker meshed."""
     n = len(atlas.charts_)
-    theirs = worker.theirs(n)
     asked = worker.submit(atlas, parts, params)
-    ours = sorted(set(range(n)) - set(theirs))
-    fresh = {i: _remesh_chart(atlas, i, None if parts is None else parts[i], params)
-             for i in ours}
-    if parts is not None:  # the join's parts of ours, taken while the worker takes its own
-        atlas._chart_parts([fresh.get(i) is True for i in range(n)])
+    fresh = {}
+    try:
+        for i in range(n):
+            if asked and not worker.take(i):
+                break
+            fresh[i] = _remesh_chart(atlas, i, None if parts is None else parts[i], params)
+        if parts is not None:  # the join's parts of ours, taken while the worker works
+            atlas._chart_parts([fresh.get(i) is True for i in range(n)])
+    except BaseException:
+        if asked:
+            worker.results()  # this re-mesh's answer, read so the next one reads its own
+        raise
     results = worker.results() if asked else None
-    if results is None:
+    theirs = [i for i in range(n) if i not in fresh]
+    if results is None or set(theirs) - set(results):
         fresh.update(zip(theirs, _remesh_here(atlas, theirs, parts, params), strict=True))
         return [fresh[i] for i in range(n)], [fresh[i] is True and i in theirs
-                                              for i in range(n)]
-    for i, (result, said) in zip(theirs, results, strict=True):
+                                              for i in range(n)], 0
+    for i in theirs:
+        result, said = results[i]
         for message in said:
             warnings.warn(message, ReconstructionWarning, stacklevel=2)
         if isinstance(result, Exception) and not isinstance(result, (FitError,
@@ -156,7 +165,7 @@ def _remesh_beside(worker: ChartWorker, atlas, parts, params: dict) -> list:
         fresh[i] = apply(atlas.charts_[i], params, result)
         if parts is not None and part_given(result) is not None:
             atlas._parts[i] = part_given(result)
-    return [fresh[i] for i in range(n)], [False] * n
+    return [fresh[i] for i in range(n)], [False] * n, len(theirs)
 
 
 def _remesh_chart(atlas, index: int, part: ChartPart | None,

@@ -1,26 +1,29 @@
-"""A second process that re-meshes half of an atlas's charts while this one meshes the others
-(`reconstruct.atlas_remesh`).
+"""A second process that re-meshes an atlas's charts beside this one (`reconstruct.atlas_remesh`).
 
 A chart's re-mesh (`SurfaceReconstructor.remesh_unless`: its spline, outline, lattice, the test
 that its part of the join is unchanged, and maybe its mesh) is mostly Python and small numpy
 calls, so threads in one process take turns on one core (hook 22k, 92 charts: 349 ms in two
-threads, 317 ms in one). A worker process holding copies of every other chart meshes them
-beside this one: the hook's charts in about 150 ms.
+threads, 317 ms in one). A worker process holding copies of the charts meshes them beside this
+one: this process takes them from the first, the worker from the last, each publishing how far
+it has come in a small shared file, until they meet (a chart both took at the meeting point is
+this process's); the charts' costs differ too much for a fixed half each (figurine 22k: the
+parent waited 20-80 ms for the worker's every other chart).
 
-The worker is sent its charts' saved state (`SurfaceReconstructor.state`: a loaded chart
+The worker is sent the charts' saved state (`SurfaceReconstructor.state`: a loaded chart
 re-meshes as its original) at the end of a re-mesh of an atlas it does not hold, through a
-file, and takes them up in the background (about 1.5 s, most of it imports); until then, in a
-daemonic process (a Dask worker, which may start none) or for an atlas with ``n_jobs=1``, this
-process meshes every chart. Each re-mesh sends every chart's mesh parameters with the change,
-so a copy meshes as its original would, and takes back what the re-mesh sets on the chart. The
-worker is daemonic: an exiting process stops it rather than waiting for it. One that fails
-(killed, a broken pipe) is said once in the log, its charts are meshed here, and no other is
-started.
+file, and takes them up in the background (about 1.5 s the first time, most of it imports);
+until then, in a daemonic process (a Dask worker, which may start none) or for an atlas with
+``n_jobs=1``, this process meshes every chart. Each re-mesh sends every chart's mesh
+parameters with the change, so a copy meshes as its original would, and takes back what the
+re-mesh set on the charts the worker took, with their parts of the join. The worker is
+daemonic: an exiting process stops it rather than waiting for it. One that fails (killed, a
+broken pipe) is said once in the log, its charts are meshed here, and no other is started.
 """
 
 from __future__ import annotations
 
 import logging
+import mmap
 import os
 import pickle
 import tempfile
@@ -82,15 +85,19 @@ class ChartWorker:
         self._sent = None  # (the charts sent, each with its map; the owners; the key)
         self._taking = None  # the key of charts sent and not yet taken up
         self._held = None  # the key of the charts it holds
-        self._file = None
+        self._file = self._shared = self._frontier = None
+        self._unread = False  # an answer to `submit` not taken by `results`
         self._key = 0
         self._lock = threading.Lock()
         self.failed = False
 
-    @staticmethod
-    def theirs(n_charts: int) -> list[int]:
-        """The charts the worker meshes of an atlas of ``n_charts``: every other one."""
-        return list(range(1, n_charts, 2))
+    def take(self, index: int) -> bool:
+        """Take chart ``index`` (ascending from 0) in this process unless the worker, which
+        takes them from the last, has: then False, and this process stops."""
+        if self._frontier[1] <= index:
+            return False
+        self._frontier[0] = index + 1
+        return True
 
     def acquire(self) -> bool:
         """Take the worker for one re-mesh (False: another re-mesh has it, or it failed)."""
@@ -131,7 +138,7 @@ class ChartWorker:
             if self._process is None:
                 self._start()
             self._key += 1
-            charts = {i: atlas.charts_[i].state() for i in self.theirs(len(atlas.charts_))}
+            charts = {i: chart.state() for i, chart in enumerate(atlas.charts_)}
             handle, self._file = tempfile.mkstemp(prefix="scanstation-charts-")
             with os.fdopen(handle, "wb") as out:
                 pickle.dump({"key": self._key, "owners": atlas._owners, "reach": reach,
@@ -146,30 +153,39 @@ class ChartWorker:
     def submit(self, atlas, parts, params: dict) -> bool:
         """Start the worker re-meshing its charts of ``atlas`` (which it `holds`) with
         ``params``; `results` gives them. False when it could not be asked."""
-        jobs = [(i, {name: getattr(atlas.charts_[i], name) for name in _mesh_params()},
+        jobs = [({name: getattr(chart, name) for name in _mesh_params()},
                  None if parts is None else _for_test(parts[i]))
-                for i in self.theirs(len(atlas.charts_))]
+                for i, chart in enumerate(atlas.charts_)]
         try:
+            if self._unread:  # a re-mesh that raised here left the worker's answer
+                self._answer("remeshed")
+                self._unread = False
+            self._frontier[:] = (0, len(jobs))  # none taken by either
             self._pipe.send(("remesh", (self._held, jobs, params)))
         except Exception as exc:  # noqa: BLE001 - it died
             self._fail(exc)
             return False
+        self._unread = True
         return True
 
     def results(self) -> list | None:
-        """The worker's results of `submit`: per chart (result, warnings said), the result
-        the chart's error or (meshed, what the re-mesh set, the mesh's vertices and faces and
-        its `ChartPart`); None (said once, in the log) when it failed."""
+        """The worker's results of `submit`: {chart index: (result, warnings said)} of the
+        charts it took, the result the chart's error or (meshed, what the re-mesh set, the
+        mesh's vertices and faces and its `ChartPart`); None (said once, in the log) when it
+        failed."""
         try:
-            return self._answer("remeshed")
+            answer = self._answer("remeshed")
         except Exception as exc:  # noqa: BLE001 - killed, a broken pipe: mesh here
             self._fail(exc)
             return None
+        self._unread = False
+        return answer
 
     def close(self) -> None:
         """Stop the worker process (a later `send` starts another)."""
         process, pipe, self._process, self._pipe = self._process, self._pipe, None, None
         self._sent = self._taking = self._held = None
+        self._unread = False
         if pipe is not None:
             pipe.close()  # the worker reads the end of its pipe and returns
         if process is not None:
@@ -177,9 +193,12 @@ class ChartWorker:
             if process.is_alive():
                 process.kill()
                 process.join(timeout=5)
-        if self._file is not None and os.path.exists(self._file):
-            os.remove(self._file)
-        self._file = None
+        for name in ("_file", "_shared"):
+            path = getattr(self, name)
+            if path is not None and os.path.exists(path):
+                os.remove(path)
+            setattr(self, name, None)
+        self._frontier = None
 
     def _start(self) -> None:
         # loky's spawning: a fresh interpreter that, unlike multiprocessing's spawn, does not
@@ -188,8 +207,18 @@ class ChartWorker:
         from joblib.externals.loky.backend import get_context
 
         context = get_context("loky")
+        # the frontiers (the next chart this process would take, the last the worker took),
+        # two int64 in a file both map; a plain store each, read by the other (a stale read
+        # makes both take the chart where they meet, never neither)
+        handle, self._shared = tempfile.mkstemp(prefix="scanstation-frontiers-",
+                                                dir="/dev/shm" if os.path.isdir("/dev/shm")
+                                                else None)
+        os.write(handle, bytes(16))
+        self._frontier = _frontier(handle)
+        os.close(handle)
         self._pipe, theirs = context.Pipe()
-        process = context.Process(target=_serve, args=(theirs,), name=NAME, daemon=True)
+        process = context.Process(target=_serve, args=(theirs, self._shared), name=NAME,
+                                  daemon=True)
         process.start()
         self._process = process
         theirs.close()
@@ -265,10 +294,20 @@ def _for_test(part: ChartPart | None) -> ChartPart | None:
     return ChartPart(empty, empty, part.kept[:0], part.nodes, part.first, part.deep)
 
 
-def _serve(pipe) -> None:
-    """The worker: answer the requests on ``pipe`` in order until it is closed."""
+def _frontier(handle: int) -> np.ndarray:
+    """(2,) int64 over the shared file open as ``handle``: the next chart the parent would
+    take, the last chart the worker took."""
+    return np.frombuffer(mmap.mmap(handle, 16), np.int64)
+
+
+def _serve(pipe, shared: str) -> None:
+    """The worker: answer the requests on ``pipe`` in order until it is closed; ``shared``
+    the file of the frontiers."""
     from .threads import single_threaded
 
+    handle = os.open(shared, os.O_RDWR)
+    frontier = _frontier(handle)
+    os.close(handle)
     held: dict = {}
     with single_threaded():  # one core here, the other the parent's
         while True:
@@ -281,7 +320,7 @@ def _serve(pipe) -> None:
                     held = _take(payload)
                     answer = ("taken", held["key"])
                 else:
-                    answer = ("remeshed", _remesh_held(held, *payload))
+                    answer = ("remeshed", _remesh_held(held, frontier, *payload))
                 pipe.send(answer)
             except Exception as exc:  # noqa: BLE001 - said to the parent, which meshes here
                 pipe.send(("failed", one_line(exc)))
@@ -303,13 +342,18 @@ def _take(path: str) -> dict:
     return {**sent, "charts": charts}
 
 
-def _remesh_held(held: dict, key: int, jobs: list, params: dict) -> list:
-    """Re-mesh the ``held`` charts (sent under ``key``), each job (index, its mesh parameters
-    in the parent, its part for the test), with ``params``."""
+def _remesh_held(held: dict, frontier: np.ndarray, key: int, jobs: list, params: dict) -> dict:
+    """Re-mesh the ``held`` charts (sent under ``key``) from the last down, while the parent
+    takes them from the first (``frontier``), each job (its mesh parameters in the parent,
+    its part for the test) with ``params``; {index: (result, warnings said)} of those taken."""
     if held.get("key") != key:
         raise RuntimeError(f"it holds the charts sent as {held.get('key')}, not {key}")
-    out = []
-    for index, current, part in jobs:
+    out = {}
+    for index in range(len(jobs) - 1, -1, -1):
+        if frontier[0] > index:  # the parent has taken it (and every one below)
+            break
+        frontier[1] = index
+        current, part = jobs[index]
         chart = held["charts"][index]
         vars(chart).update(current)
         with warnings.catch_warnings(record=True) as caught:
@@ -321,13 +365,13 @@ def _remesh_held(held: dict, key: int, jobs: list, params: dict) -> list:
                 meshed = exc
         said = [str(w.message) for w in caught if issubclass(w.category, ReconstructionWarning)]
         if isinstance(meshed, Exception):
-            out.append((meshed, said))
+            out[index] = (meshed, said)
             continue
         names = _SET if meshed else _SET[:3]  # (an unmeshed copy's lattice is stale)
         fields = {name: vars(chart)[name] for name in names if name in vars(chart)}
         arrays = ((np.asarray(chart.mesh_.vertices), np.asarray(chart.mesh_.faces),
                    part_of(chart, index, held["owners"], held["reach"])) if meshed else None)
-        out.append(((meshed, fields, arrays), said))
+        out[index] = ((meshed, fields, arrays), said)
     return out
 
 

@@ -124,6 +124,7 @@ class ChartWorker:
                 if not self._pipe.poll():
                     return False  # still taking them up
                 self._held, self._taking = self._answer("taken"), None
+                self._unlink("_shared")  # both have it mapped: no file left behind
             except Exception as exc:  # noqa: BLE001 - it died taking them up
                 self._fail(exc)
                 return False
@@ -193,12 +194,16 @@ class ChartWorker:
             if process.is_alive():
                 process.kill()
                 process.join(timeout=5)
-        for name in ("_file", "_shared"):
-            path = getattr(self, name)
-            if path is not None and os.path.exists(path):
-                os.remove(path)
-            setattr(self, name, None)
+        self._unlink("_file")
+        self._unlink("_shared")
         self._frontier = None
+
+    def _unlink(self, name: str) -> None:
+        """Remove the file at attribute ``name`` (if any is left) and forget it."""
+        path = getattr(self, name)
+        if path is not None and os.path.exists(path):
+            os.remove(path)
+        setattr(self, name, None)
 
     def _start(self) -> None:
         # loky's spawning: a fresh interpreter that, unlike multiprocessing's spawn, does not

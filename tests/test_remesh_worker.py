@@ -59,7 +59,9 @@ def test_the_worker_meshes_half_the_charts_as_this_process_would(saved, worker):
     for atlas in (beside, alone):
         atlas.remesh(lam=2.0)
     assert beside.remesh_counts_["charts in the worker"] == 0  # sent after it
+    sent_through = worker._file
     held(worker, beside)
+    assert not os.path.exists(sent_through) and worker._shared is None  # no file left
     for change in ({"lam": 0.7}, {"depth": 3}, {"lam": 0.05}, {"lam": 3.0, "depth": 2}):
         mesh, said = remeshed(beside, change)
         expected, expected_said = remeshed(alone, change)

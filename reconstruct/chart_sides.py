@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 
 from .faithfulness import signed_residuals
 from .join import ExteriorProbe, exterior_votes
-from .sdf_grid import QUERY_THREADS
+from .sdf_grid import QUERY_THREADS, union
 
 #: A chart faces out of the object when its exterior vote (`join.exterior_votes`) is this clear.
 VOTE_LIMIT = 0.5
@@ -133,7 +133,7 @@ class UnchartedTracker:
                 if "_tree" not in self.__dict__:
                     self._tree = cKDTree(self.points)
                 near = self._tree.query_ball_point(moved, reach * (1 + 1e-6))
-                near = np.unique(np.concatenate([np.asarray(i, np.int64) for i in near]))
+                near = union([np.asarray(i, np.int64) for i in near])
                 far[near] = tree.query(self.points[near], distance_upper_bound=reach * (
                     1 + 1e-9))[0] > reach
         if last is not None and np.array_equal(far, last[0]):

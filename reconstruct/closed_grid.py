@@ -38,7 +38,6 @@ from .grid_steps import (
     occupancy,
     pockets_outside,
     squared_distance,
-    union,
     voter_sides,
 )
 from .marching import KeptMarch
@@ -49,6 +48,7 @@ from .sdf_grid import (
     kept_mesh_arrays,
     lattice_box,
     restore_kept_mesh,
+    union,
 )
 
 #: Voxels from the nearest sample within which a closed join trusts the tangent planes alone.

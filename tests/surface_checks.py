@@ -1,4 +1,4 @@
-"""Checks on meshes shared by the test modules (a helper module: no tests here)."""
+"""Checks on meshes and test clouds shared by the test modules (a helper module: no tests here)."""
 
 import numpy as np
 
@@ -31,3 +31,11 @@ def side_rays(heights, angles_deg):
     zz, aa = np.meshgrid(heights, np.radians(angles_deg), indexing="ij")
     origins = np.c_[np.zeros(zz.size), np.zeros(zz.size), zz.ravel()]
     return origins, np.c_[np.cos(aa.ravel()), np.sin(aa.ravel()), np.zeros(zz.size)]
+
+
+def sphere_cloud(n=1500, sigma=0.01, seed=0) -> np.ndarray:
+    """(n, 3) points on the unit sphere with Gaussian noise of ``sigma`` of the diagonal."""
+    rng = np.random.default_rng(seed)
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    return direction + rng.normal(0, sigma * 2 * np.sqrt(3), (n, 3))

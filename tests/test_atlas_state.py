@@ -8,18 +8,12 @@ import zipfile
 import numpy as np
 import pytest
 import trimesh
+from surface_checks import sphere_cloud
 
 from capture.cli import main
 from reconstruct.atlas import AtlasReconstructor
 from reconstruct.errors import InvalidInputError
 from reconstruct.pipeline import SurfaceReconstructor
-
-
-def sphere_cloud(n=1500, sigma=0.01, seed=0):
-    rng = np.random.default_rng(seed)
-    direction = rng.normal(size=(n, 3))
-    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    return direction + rng.normal(0, sigma * 2 * np.sqrt(3), (n, 3))
 
 
 @pytest.fixture(scope="module")

@@ -10,22 +10,16 @@ import warnings
 
 import numpy as np
 import pytest
+from surface_checks import sphere_cloud
 
 from reconstruct import atlas_remesh, remesh_worker
 from reconstruct.atlas import AtlasReconstructor
 from reconstruct.errors import InvalidInputError
 
 
-def sphere_cloud(n=2000, sigma=0.01, seed=0):
-    rng = np.random.default_rng(seed)
-    direction = rng.normal(size=(n, 3))
-    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    return direction + rng.normal(0, sigma * 2 * np.sqrt(3), (n, 3))
-
-
 @pytest.fixture(scope="module")
 def saved(tmp_path_factory):
-    atlas = AtlasReconstructor(chart_size=400, random_state=0).fit(sphere_cloud())
+    atlas = AtlasReconstructor(chart_size=400, random_state=0).fit(sphere_cloud(2000))
     return atlas.save(tmp_path_factory.mktemp("worker") / "sphere.npz")
 
 

@@ -90,6 +90,7 @@ class ChartWorker:
         self._key = 0
         self._lock = threading.Lock()
         self.failed = False
+        self.pid = os.getpid()  # the process it serves
 
     def take(self, index: int) -> bool:
         """Take chart ``index`` (ascending from 0) in this process unless the worker, which
@@ -255,10 +256,11 @@ _worker_lock = threading.Lock()
 
 
 def shared_worker() -> ChartWorker:
-    """The process's `ChartWorker` (made on first use; its process on its first `send`)."""
+    """The process's `ChartWorker` (made on first use; its process on its first `send`). A
+    process forked from one that had a worker makes its own (the pipe is its parent's)."""
     global _worker
     with _worker_lock:
-        if _worker is None:
+        if _worker is None or _worker.pid != os.getpid():
             _worker = ChartWorker()
         return _worker
 

@@ -112,3 +112,18 @@ def test_a_refused_remesh_leaves_the_worker_in_step(saved, worker):
     expected, _ = remeshed(alone, {"lam": 0.7})
     np.testing.assert_array_equal(mesh.vertices, expected.vertices)
     assert beside.remesh_counts_["charts in the worker"] > 0
+
+
+def test_a_forked_process_makes_its_own_worker(worker):
+    """A process forked after a re-mesh must not talk through its parent's pipe."""
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: a worker of its own
+        os.write(write, b"1" if remesh_worker.shared_worker() is not worker else b"0")
+        os._exit(0)
+    os.waitpid(pid, 0)
+    answer = os.read(read, 1)
+    os.close(read)
+    os.close(write)
+    assert answer == b"1"
+    assert remesh_worker.shared_worker() is worker

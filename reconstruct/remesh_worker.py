@@ -29,6 +29,7 @@ import pickle
 import tempfile
 import threading
 import warnings
+from multiprocessing.util import Finalize
 
 import numpy as np
 import trimesh
@@ -91,6 +92,7 @@ class ChartWorker:
         self._lock = threading.Lock()
         self.failed = False
         self.pid = os.getpid()  # the process it serves
+        self._finalizing = False
 
     def take(self, index: int) -> bool:
         """Take chart ``index`` (ascending from 0) in this process unless the worker, which
@@ -125,7 +127,6 @@ class ChartWorker:
                 if not self._pipe.poll():
                     return False  # still taking them up
                 self._held, self._taking = self._answer("taken"), None
-                self._unlink("_shared")  # both have it mapped: no file left behind
             except Exception as exc:  # noqa: BLE001 - it died taking them up
                 self._fail(exc)
                 return False
@@ -195,16 +196,16 @@ class ChartWorker:
             if process.is_alive():
                 process.kill()
                 process.join(timeout=5)
-        self._unlink("_file")
-        self._unlink("_shared")
-        self._frontier = None
+        self._remove_files()
+        self._file = self._shared = self._frontier = None
 
-    def _unlink(self, name: str) -> None:
-        """Remove the file at attribute ``name`` (if any is left) and forget it."""
-        path = getattr(self, name)
-        if path is not None and os.path.exists(path):
-            os.remove(path)
-        setattr(self, name, None)
+    def _remove_files(self) -> None:
+        """Remove the files sent through that the worker has not (it removes the charts'
+        once read, the frontiers' once mapped); also when this process exits
+        (`multiprocessing.util.Finalize`: in a child process too, where atexit does not run)."""
+        for path in (self._file, self._shared):
+            if path is not None and os.path.exists(path):
+                os.remove(path)
 
     def _start(self) -> None:
         # loky's spawning: a fresh interpreter that, unlike multiprocessing's spawn, does not
@@ -222,6 +223,9 @@ class ChartWorker:
         os.write(handle, bytes(16))
         self._frontier = _frontier(handle)
         os.close(handle)
+        if not self._finalizing:
+            Finalize(None, self._remove_files, exitpriority=10)
+            self._finalizing = True
         self._pipe, theirs = context.Pipe()
         process = context.Process(target=_serve, args=(theirs, self._shared), name=NAME,
                                   daemon=True)
@@ -315,6 +319,7 @@ def _serve(pipe, shared: str) -> None:
     handle = os.open(shared, os.O_RDWR)
     frontier = _frontier(handle)
     os.close(handle)
+    os.remove(shared)  # both have it mapped: no file left behind
     held: dict = {}
     with single_threaded():  # one core here, the other the parent's
         while True:

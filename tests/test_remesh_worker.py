@@ -5,6 +5,8 @@ warnings as in this process alone, and a worker that dies leaves its charts to t
 import logging
 import os
 import signal
+import subprocess
+import sys
 import time
 import warnings
 
@@ -55,7 +57,7 @@ def test_the_worker_meshes_half_the_charts_as_this_process_would(saved, worker):
     assert beside.remesh_counts_["charts in the worker"] == 0  # sent after it
     sent_through = worker._file
     held(worker, beside)
-    assert not os.path.exists(sent_through) and worker._shared is None  # no file left
+    assert not os.path.exists(sent_through) and not os.path.exists(worker._shared)
     for change in ({"lam": 0.7}, {"depth": 3}, {"lam": 0.05}, {"lam": 3.0, "depth": 2}):
         mesh, said = remeshed(beside, change)
         expected, expected_said = remeshed(alone, change)
@@ -127,3 +129,20 @@ def test_a_forked_process_makes_its_own_worker(worker):
     os.close(write)
     assert answer == b"1"
     assert remesh_worker.shared_worker() is worker
+
+
+def test_a_process_that_exits_after_one_remesh_leaves_no_file(saved):
+    """Its charts were sent to a worker still starting: the files go with the process."""
+    code = (
+        "import sys\n"
+        "from reconstruct import atlas_remesh, remesh_worker\n"
+        "from reconstruct.atlas import AtlasReconstructor\n"
+        "atlas_remesh.MIN_CHARTS = 2\n"
+        f"AtlasReconstructor.load({str(saved)!r}).remesh(lam=2.0)\n"
+        "worker = remesh_worker.shared_worker()\n"
+        "print(worker._file, worker._shared)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=120)
+    paths = run.stdout.split()
+    assert len(paths) == 2 and not any(os.path.exists(path) for path in paths), run.stdout

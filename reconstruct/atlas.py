@@ -51,7 +51,7 @@ from .chart_fit import (
     n_chart_workers,
     warm_up,
 )
-from .chart_parts import ChartPart, chart_part
+from .chart_parts import ChartPart, parts_of
 from .chart_sides import ChartSides, UnchartedTracker, two_layer_charts, uncharted_points
 from .charts import ChartDecomposition
 from .closed_grid import ClosedSDF
@@ -66,7 +66,6 @@ from .io import one_line, read_state, write_state
 from .join import (
     ExteriorProbe,
     border_vertices,
-    chart_samples,
     check_up,
     faces_seen_side,
     implicit_mesh,
@@ -75,7 +74,6 @@ from .join import (
     owned,
     stretched_samples,
     thin_shell,
-    vertex_normals,
 )
 from .join_alignment import steady_join
 from .mesh_edges import topology, turn_faces
@@ -458,22 +456,18 @@ class AtlasReconstructor(BaseEstimator):
         it has none or is ``fresh`` ((c,) bool; None: every chart that has a mesh)."""
         if "_owners" not in self.__dict__:  # kept for re-meshing (a fit drops it)
             self._owners = self._chart_owners()
-        labels, tree = self._owners
         parts = self.__dict__.get("_parts")
         if parts is None or len(parts) != len(self.charts_):
             parts = [None] * len(self.charts_)
         todo = [i for i, (chart, part) in enumerate(zip(self.charts_, parts, strict=True))
                 if part is None or (fresh[i] if fresh is not None else "mesh_" in vars(chart))]
         if todo:
-            charts = [self.charts_[i] for i in todo]
-            meshes = [self._chart_mesh(i) for i in todo]
-            kept = chart_samples(meshes, labels, self.points_, tree=tree, charts=todo,
-                                 reach=self.reach * self.decomposition_.spacing_)
-            for i, chart, k, normals in zip(todo, charts, kept, vertex_normals(meshes, kept),
-                                            strict=True):
-                lattice = None if chart.grid_spacing is None else chart.outline_lattice()
-                parts[i] = chart_part(chart.mesh_.vertices, chart.vertices_2d_, lattice,
-                                      chart.grid_spacing, k, normals)
+            for i in todo:
+                self._chart_mesh(i)  # (meshed again if a re-mesh skipped it)
+            taken = parts_of([self.charts_[i] for i in todo], todo, self._owners,
+                             self.reach * self.decomposition_.spacing_)
+            for i, part in zip(todo, taken, strict=True):
+                parts[i] = part
         self._parts = parts
         return parts
 

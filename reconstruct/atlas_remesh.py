@@ -38,7 +38,7 @@ REMESH_THREADS = 2
 def remesh_atlas(atlas, params: dict) -> trimesh.Trimesh:
     """`AtlasReconstructor.remesh` of the fitted ``atlas`` with ``params`` (lam, depth, ...):
     sets its ``mesh_``, ``timings_`` ("remesh charts", "join", "remesh") and
-    ``remesh_counts_``, and returns the mesh. Half the charts are meshed in a worker process
+    ``remesh_counts_``, and returns the mesh. The charts are shared with a worker process
     once it holds them (`reconstruct.remesh_worker`), sent after the first re-mesh."""
     worker = _worker_for(atlas)
     try:

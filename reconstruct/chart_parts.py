@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .join import chart_samples, vertex_normals
 from .meshing import lattice_nodes, sample_ring
 
 #: How far (in grid spacings) a kept vertex may lie from a lattice node and still count as one.
@@ -81,6 +82,21 @@ def chart_part(vertices, vertices_2d, lattice, spacing, kept, normals) -> ChartP
     if _inside(deep, nodes - first).all():
         part.nodes, part.first, part.deep = nodes, first, deep
     return part
+
+
+def parts_of(charts, indices, owners, reach: float) -> list[ChartPart]:
+    """The `ChartPart` of each of the meshed ``charts`` (an atlas's charts ``indices``): their
+    vertices in their own part of the cloud (``owners``: the atlas's labels of its points and
+    a cKDTree of those with a chart; ``reach``: `join.chart_samples`), with normals, on their
+    lattice when they are pinned to one."""
+    labels, tree = owners
+    meshes = [chart.mesh_ for chart in charts]
+    kept = chart_samples(meshes, labels, None, reach=reach, tree=tree, charts=indices)
+    return [chart_part(chart.mesh_.vertices, chart.vertices_2d_,
+                       None if chart.grid_spacing is None else chart.outline_lattice(),
+                       chart.grid_spacing, k, normals)
+            for chart, k, normals in zip(charts, kept, vertex_normals(meshes, kept),
+                                         strict=True)]
 
 
 def _inside(mask: np.ndarray, ij: np.ndarray) -> np.ndarray:

@@ -34,19 +34,20 @@ from multiprocessing.util import Finalize
 import numpy as np
 import trimesh
 
-from .chart_parts import ChartPart, chart_part, unchanged
+from .chart_parts import ChartPart, parts_of, unchanged
 from .errors import DegenerateCloudError, FitError, ReconstructionWarning
 from .io import one_line
-from .join import chart_samples, owned, vertex_normals
+from .join import owned
 
 log = logging.getLogger(__name__)
 
 #: Charts below which an atlas is re-meshed in this process alone (the worker's round trip and
-#: the pickling of its results outweigh half of a few charts' 3-8 ms).
+#: the pickling of its results outweigh a share of a few charts' 3-8 ms).
 MIN_CHARTS = 8
 #: The worker process's name.
 NAME = "chart re-meshing worker"
-#: Seconds a re-mesh waits for the worker's charts before meshing them here.
+#: Seconds this process waits for an answer of the worker before taking it for hung (and
+#: meshing its charts here).
 WAIT = 60.0
 #: What `SurfaceReconstructor.remesh_unless` sets on a chart, taken back from the worker (with,
 #: when it meshed, the mesh's vertices and faces); the first three also when it did not.
@@ -79,7 +80,8 @@ def remesh_chart(chart, index: int, part: ChartPart | None, params: dict, owners
 
 class ChartWorker:
     """The worker process (one per process: `shared_worker`): `send` it an atlas's charts,
-    `holds` says whether it has taken them up, `submit` and `results` re-mesh its half."""
+    `holds` says whether it has taken them up, `submit` and `results` re-mesh the charts it
+    takes (`take`: this process from the first, the worker from the last)."""
 
     def __init__(self):
         self._process = self._pipe = None
@@ -133,7 +135,7 @@ class ChartWorker:
         return self._held == self._sent[2]
 
     def send(self, atlas, reach: float) -> None:
-        """Send the worker ``atlas``'s charts (its half), as they are now: their state in a
+        """Send the worker ``atlas``'s charts as they are now: their state in a
         file it reads while this process goes on. Not while it takes up others."""
         if self.failed or self._taking is not None:
             return
@@ -382,17 +384,7 @@ def _remesh_held(held: dict, frontier: np.ndarray, key: int, jobs: list, params:
         names = _SET if meshed else _SET[:3]  # (an unmeshed copy's lattice is stale)
         fields = {name: vars(chart)[name] for name in names if name in vars(chart)}
         arrays = ((np.asarray(chart.mesh_.vertices), np.asarray(chart.mesh_.faces),
-                   part_of(chart, index, held["owners"], held["reach"])) if meshed else None)
+                   parts_of([chart], [index], held["owners"], held["reach"])[0])
+                  if meshed else None)
         out[index] = ((meshed, fields, arrays), said)
     return out
-
-
-def part_of(chart, index: int, owners, reach: float) -> ChartPart:
-    """The `ChartPart` of the atlas's chart ``index``, meshed (as the atlas's join takes it:
-    `AtlasReconstructor._chart_parts`; ``owners``, ``reach`` as for `remesh_chart`)."""
-    labels, tree = owners
-    kept = chart_samples([chart.mesh_], labels, None, reach=reach, tree=tree,
-                         charts=[index])[0]
-    lattice = None if chart.grid_spacing is None else chart.outline_lattice()
-    return chart_part(chart.mesh_.vertices, chart.vertices_2d_, lattice, chart.grid_spacing,
-                      kept, vertex_normals([chart.mesh_], [kept])[0])

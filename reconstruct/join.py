@@ -47,6 +47,7 @@ from .mesh_edges import (
     close_small_holes,
     edge_runs,
     face_volumes,
+    kept_faces,
     piece_labels,
     signed_volume,
     split_nonmanifold,
@@ -431,19 +432,18 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         near_tree = tree if data is None else cKDTree(np.asarray(data, float))
         far = near_tree.query(mesh.triangles_center, distance_upper_bound=trim * voxel * (
             1 + 1e-9), workers=QUERY_THREADS)[0] > trim * voxel
-        mesh.update_faces(~far)
-        mesh.remove_unreferenced_vertices()
+        mesh, _ = kept_faces(mesh, ~far)
     runs = edge_runs(np.asarray(mesh.faces))
     piece = piece_labels(mesh.faces, runs)
-    if piece.max() > 0:
+    volumes = face_volumes(mesh) if closed else None  # (a closed join's faces are all kept
+    if piece.max() > 0:  # but in pieces dropped whole, and split_nonmanifold moves none)
         sizes = np.bincount(piece)
         largest = int(np.argmax(sizes))
         kept = sizes >= min_share * sizes[largest]
         if closed:  # a closed piece facing the other way: a void, which no scan sees
-            kept &= ~_voids(mesh, piece, runs, largest)
-        mesh.update_faces(kept[piece])
-        mesh.remove_unreferenced_vertices()
-        runs = None
+            kept &= ~_voids(piece, runs, largest, volumes)
+            volumes = volumes[kept[piece]]
+        mesh, runs = kept_faces(mesh, kept[piece], runs)
     if closed:
         parted = split_nonmanifold(mesh, runs)
         mesh, runs = parted, (runs if parted is mesh else None)
@@ -451,8 +451,8 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         capped = close_small_holes(mesh, max_length=hole * voxel, runs=runs)
         mesh, runs = capped, (runs if capped is mesh else None)
     facts = topology(np.asarray(mesh.faces), runs)
-    if facts[0] and signed_volume(mesh) < 0:  # watertight
-        turn_faces(mesh)
+    if facts[0] and (signed_volume(mesh) if volumes is None else volumes.sum()) < 0:
+        turn_faces(mesh)  # watertight, and turned in
     if sdf is grid and data is None:
         sdf.mesh_, sdf.mesh_key_, sdf.topology_ = _copied(mesh), key, facts
     return mesh
@@ -488,18 +488,18 @@ def kept_topology(grid, faces) -> tuple[bool, bool, int] | None:
     return known
 
 
-def _voids(mesh: trimesh.Trimesh, piece: np.ndarray, runs, largest: int) -> np.ndarray:
-    """(p,) bool: which pieces of a closed join's ``mesh`` (``piece`` (f,) label of each face;
-    ``runs`` its `edge_runs`) are voids: closed, and turned the other way from the
-    ``largest`` (marching cubes orients every piece by the grid's sign, so such a piece bounds
-    outside values enclosed by inside ones, within some solid piece). Two layers of samples
-    under the surface, a thin part's shell meeting the charts beside it, close one (figurine
-    20k: a 600-face bubble 2 mm under an ear, Euler 4 instead of 2)."""
+def _voids(piece: np.ndarray, runs, largest: int, volumes: np.ndarray) -> np.ndarray:
+    """(p,) bool: which pieces of a closed join's mesh (``piece`` (f,) label of each face;
+    ``runs`` its `edge_runs`; ``volumes`` its `face_volumes`) are voids: closed, and turned
+    the other way from the ``largest`` (marching cubes orients every piece by the grid's sign,
+    so such a piece bounds outside values enclosed by inside ones, within some solid piece).
+    Two layers of samples under the surface, a thin part's shell meeting the charts beside it,
+    close one (figurine 20k: a 600-face bubble 2 mm under an ear, Euler 4 instead of 2)."""
     _, order, run_start, run_length = runs
     open_edges = np.repeat(run_length != 2, run_length)  # the half-edges, in edge order
     n = int(piece.max()) + 1
     closed = np.bincount(piece[order[open_edges] // 3], minlength=n) == 0
-    volume = np.bincount(piece, face_volumes(mesh), minlength=n)
+    volume = np.bincount(piece, volumes, minlength=n)
     return closed & closed[largest] & (volume * volume[largest] < 0)
 
 

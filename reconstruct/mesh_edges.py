@@ -29,8 +29,11 @@ def signed_volume(mesh: trimesh.Trimesh) -> float:
 
 def face_volumes(mesh: trimesh.Trimesh) -> np.ndarray:
     """(f,) six times the signed volume of the tetrahedron of each face and the origin."""
-    a, b, c = (np.asarray(mesh.vertices)[np.asarray(mesh.faces)[:, k]] for k in range(3))
-    return np.einsum("ij,ij->i", a, np.cross(b, c))
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    # by coordinates, gathered from columns (rows and np.cross: 7 ms of 116k faces, this 3)
+    (ax, bx, cx), (ay, by, cy), (az, bz, cz) = (
+        np.ascontiguousarray(vertices[:, axis])[faces.T] for axis in range(3))
+    return ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
 
 
 def split_nonmanifold(mesh: trimesh.Trimesh, runs=None) -> trimesh.Trimesh:
@@ -95,10 +98,16 @@ def _one_fan_each(faces, directed, order, run_start, run_length) -> bool:
     return bool(one_fan.all())
 
 
+def half_edges(faces: np.ndarray) -> np.ndarray:
+    """(3f, 2) the half-edges of ``faces`` (f, 3), in the faces' direction (``take``: a list
+    index along the rows' axis took 4.3 ms for 116k faces, this 0.5)."""
+    return np.asarray(faces).take([0, 1, 1, 2, 2, 0], axis=1).reshape(-1, 2)
+
+
 def _edge_keys(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The half-edges (3f, 2) of ``faces`` (f, 3), in the faces' direction, and one int64 key
     (3f,) per undirected edge (equal keys: the same edge; sorted keys: lexicographic order)."""
-    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    directed = half_edges(faces)
     low = np.minimum(directed[:, 0], directed[:, 1]).astype(np.int64)
     high = np.maximum(directed[:, 0], directed[:, 1]).astype(np.int64)
     return directed, low * (int(high.max(initial=0)) + 1) + high
@@ -116,6 +125,31 @@ def edge_runs(faces: np.ndarray) -> tuple:
     ordered = key[order]
     run_start = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]]) if len(key) else order
     return directed, order, run_start, np.diff(np.r_[run_start, len(key)])
+
+
+def kept_faces(mesh: trimesh.Trimesh, keep: np.ndarray, runs=None) -> tuple:
+    """``mesh`` with only the faces ``keep`` (f,) bool and the vertices they use (in order),
+    and its `edge_runs` taken from ``runs``, the mesh's, if given (else None): as trimesh's
+    ``update_faces`` and ``remove_unreferenced_vertices`` and a new `edge_runs`, which took
+    13 and 8 ms of a 58k-vertex join. Returns (mesh, runs)."""
+    faces = np.asarray(mesh.faces)
+    new_face = np.cumsum(keep) - 1
+    faces_kept = faces[keep]
+    used = np.zeros(len(mesh.vertices), bool)
+    used[faces_kept.ravel()] = True
+    faces_kept = (np.cumsum(used) - 1)[faces_kept]
+    kept = trimesh.Trimesh(np.asarray(mesh.vertices)[used], faces_kept, process=False)
+    if runs is None:
+        return kept, None
+    # the vertices keep their order, so the edges do theirs, and each run its half-edges
+    _, order, run_start, run_length = runs
+    still = np.repeat(keep, 3)[order]
+    old = order[still]
+    run = np.repeat(np.arange(len(run_start)), run_length)[still]
+    start = np.flatnonzero(np.r_[True, run[1:] != run[:-1]]) if len(run) else run
+    directed = half_edges(faces_kept)
+    return kept, (directed, 3 * new_face[old // 3] + old % 3, start,
+                  np.diff(np.r_[start, len(run)]))
 
 
 def topology(faces: np.ndarray, runs=None) -> tuple[bool, bool, int]:

@@ -14,7 +14,13 @@ from reconstruct.join import (
     stretched_samples,
     thin_shell,
 )
-from reconstruct.mesh_edges import split_nonmanifold, topology, turn_faces
+from reconstruct.mesh_edges import (
+    edge_runs,
+    kept_faces,
+    split_nonmanifold,
+    topology,
+    turn_faces,
+)
 
 
 def tube_samples(gap: float = 0.0, n: int = 6000, seed: int = 0):
@@ -221,6 +227,27 @@ def test_topology_reads_as_trimesh_does():
         assert topology(mesh.faces) == (mesh.is_watertight, mesh.is_winding_consistent,
                                          mesh.euler_number)
     assert topology(np.zeros((0, 3), int)) == (False, False, 0)
+
+
+def test_kept_faces_drops_faces_and_vertices_and_keeps_the_edge_runs():
+    # a sphere and a small box apart: dropping the box, or a cap of the sphere, gives the
+    # mesh trimesh's update_faces and remove_unreferenced_vertices give, and its runs are
+    # those edge_runs finds for it
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    box.apply_translation((3.0, 0.0, 0.0))
+    mesh = trimesh.util.concatenate([box, sphere])
+    for keep in (np.arange(len(mesh.faces)) >= len(box.faces),
+                 mesh.triangles_center[:, 2] < 0.5):
+        expected = mesh.copy()
+        expected.update_faces(keep)
+        expected.remove_unreferenced_vertices()
+        kept, runs = kept_faces(mesh, keep, edge_runs(np.asarray(mesh.faces)))
+        np.testing.assert_array_equal(kept.vertices, expected.vertices)
+        np.testing.assert_array_equal(kept.faces, expected.faces)
+        for got, want in zip(runs, edge_runs(np.asarray(kept.faces)), strict=True):
+            np.testing.assert_array_equal(got, want)
+        assert kept_faces(mesh, keep)[1] is None
 
 
 def stretched_grid():

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from .grid_steps import (
     VOTE_MARGIN,
@@ -40,6 +39,7 @@ from .grid_steps import (
     squared_distance,
     voter_sides,
 )
+from .kdtree import PointTree
 from .marching import KeptMarch
 from .sdf_grid import (
     QUERY_THREADS,
@@ -131,9 +131,9 @@ class ClosedSDF:
     def fit(self, samples, normals, kept_open=None, uncharted=None) -> ClosedSDF:
         """samples, normals : (m, 3); kept_open : (m,) bool samples whose front the opening may
         not fill (`reconstruct.join.implicit_mesh`); uncharted : (p, 3) data points no chart
-        represents, or a callable of the samples' cKDTree and of the samples (q, 3) added
-        and removed since its last call (None: all are new) giving them. The box fitted or
-        loaded last is kept if it holds the samples with the seal's pad. Returns self."""
+        represents, or a callable of the samples' `kdtree.PointTree` and of the samples (q, 3)
+        added and removed since its last call (None: all are new) giving them. The box fitted
+        or loaded last is kept if it holds the samples with the seal's pad. Returns self."""
         self._take(samples, normals, kept_open)
         return self._fit_taken(uncharted)
 
@@ -218,7 +218,7 @@ class ClosedSDF:
         self.normals_ = np.array(normals, float, order="C")
         self.kept_open_ = (np.zeros(len(self.samples_), bool) if kept_open is None
                            else np.array(kept_open, bool))
-        self.tree_ = cKDTree(self.samples_)
+        self.tree_ = PointTree(self.samples_)
 
     def _holds(self, samples: np.ndarray) -> bool:
         """Whether the box kept (``origin_``, ``shape_``, for the present parameters) holds
@@ -251,7 +251,7 @@ class ClosedSDF:
         bound = float(reach[known].max(initial=0.0)) * (1 + 1e-9)
         again = ~known
         if known.any():
-            again[known] = cKDTree(moved).query(at[known], distance_upper_bound=bound,
+            again[known] = PointTree(moved).query(at[known], distance_upper_bound=bound,
                                                 workers=QUERY_THREADS)[0] <= reach[known]
         if again.any():
             distance[again], front[again] = voter_sides(at[again], self.samples_,
@@ -378,7 +378,7 @@ class ClosedSDF:
         reach = int(np.ceil(self._reach / self.voxel)) + 1
         ball = _LOCAL + np.sqrt(3.0)
         candidates = []
-        tree = cKDTree(moved)
+        tree = PointTree(moved)
         for box in boxes_round(np.ravel_multi_index(tuple(cells.T), tuple(self.shape_)),
                                self.shape_, reach):
             low, high = np.array([[s.start, s.stop] for s in box]).T

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
+from .kdtree import PointTree
 from .sdf_grid import QUERY_THREADS
 
 #: About as many nodes of one enclosed pocket vote on its side (`exterior_of`), evenly taken:
@@ -118,11 +118,12 @@ def exterior_of(free, origin, voxel: float, samples=None, normals=None, tree=Non
     The free nodes connected to the grid's border are exterior. A free pocket enclosed by the
     samples (the inside of a closed object, or a concave nook the band closed off) is exterior
     when the nearest samples' tangent planes, oriented by ``normals`` (m, 3), put most of its
-    nodes in front (without normals: never). ``tree``: a cKDTree of ``samples`` (m, 3)."""
+    nodes in front (without normals: never). ``tree``: a `kdtree.PointTree` of ``samples``
+    (m, 3)."""
     pockets = free_pockets(free)
     front = None
     if normals is not None and pockets[2] is not None:
-        tree = cKDTree(samples) if tree is None else tree
+        tree = PointTree(samples) if tree is None else tree
         front = voter_sides(origin + voxel * pockets[2][0], samples, normals, tree, voxel)[1]
     return pockets_outside(pockets, front)[pockets[0]] & free
 
@@ -146,7 +147,7 @@ def free_pockets(free: np.ndarray) -> tuple:
     return pieces, border, voters
 
 
-def voter_sides(at, samples, normals, tree: cKDTree,
+def voter_sides(at, samples, normals, tree: PointTree,
                 voxel: float) -> tuple[np.ndarray, np.ndarray]:
     """For the voters at ``at`` (g, 3): the distance (g,) to their nearest sample and whether
     they lie in front (g,) of its tangent plane and of those of the samples within

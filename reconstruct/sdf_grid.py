@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.ndimage import maximum_filter
-from scipy.spatial import cKDTree
+
+from .kdtree import PointTree
 
 #: Samples whose tangent planes enter a node's distance (Kolluri's k).
 IMLS_NEIGHBOURS = 8
@@ -49,7 +50,7 @@ def lattice_box(samples: np.ndarray, voxel: float, pad: float) -> tuple[np.ndarr
     return low, np.ceil((high - low) / voxel).astype(np.int64) + 1
 
 
-def imls(nodes, samples, normals, tree: cKDTree, voxel: float, return_index: bool = False):
+def imls(nodes, samples, normals, tree: PointTree, voxel: float, return_index: bool = False):
     """IMLS signed distance at ``nodes`` (q, 3) from oriented ``samples`` (m, 3) / ``normals``
     (m, 3) in ``tree``. Returns values (q,) and the distances (q, k) to the k nearest samples
     (k = 8, or fewer samples), nearest first (and their indices (q, k), ``return_index``)."""
@@ -67,13 +68,13 @@ def imls(nodes, samples, normals, tree: cKDTree, voxel: float, return_index: boo
     return (values, d, index) if return_index else (values, d)
 
 
-def changed_rows(old, old_normals, old_tree: cKDTree, samples, normals, tolerance: float,
+def changed_rows(old, old_normals, old_tree: PointTree, samples, normals, tolerance: float,
                  voxel: float, old_tags=None, tags=None) -> tuple[np.ndarray, np.ndarray]:
     """(m',) bool new ``samples`` / ``normals`` (m', 3) not among the ``old`` (m, 3), and (m,)
     bool old ones not among the new. A sample is the same when it moved by at most
     ``tolerance``, its normal by at most ``tolerance / voxel``, its tag (``old_tags`` (m,),
     ``tags`` (m',), if given) is equal, and no other new sample claims the same old one.
-    ``old_tree``: a cKDTree of ``old``."""
+    ``old_tree``: a `kdtree.PointTree` of ``old``."""
     if len(samples) == 0 or len(old) == 0:
         return np.ones(len(samples), bool), np.ones(len(old), bool)
     head, tail = equal_ends((old, old_normals, old_tags), (samples, normals, tags))
@@ -81,7 +82,8 @@ def changed_rows(old, old_normals, old_tree: cKDTree, samples, normals, toleranc
     # the equal ends are matched to the old ones between them (through the old tree: one
     # matched to an old row outside them counts as added)
     middle = np.arange(head, len(samples) - tail)
-    gap, match = old_tree.query(samples[middle], distance_upper_bound=2 * tolerance)
+    gap, match = old_tree.query(samples[middle], distance_upper_bound=2 * tolerance,
+                                workers=QUERY_THREADS)
     same = (gap <= tolerance) & (match >= head) & (match < len(old) - tail)
     match = np.minimum(match, len(old) - 1)
     same[same] = np.all(np.abs(normals[middle][same] - old_normals[match[same]])
@@ -125,9 +127,9 @@ class SparseSDF:
 
     Fitted attributes: ``origin_`` (3,), ``shape_`` (3,), ``values_`` (shape) float IMLS
     distance (``voxel · (band + 1)`` far from the samples), ``mask_`` (shape) bool nodes within
-    ``band`` voxels of a sample, ``tree_`` cKDTree of ``samples_`` (m, 3), ``normals_`` (m, 3),
-    ``reach_`` (largest 8-neighbour distance of a node in the band), ``n_evaluated_`` nodes
-    evaluated by the last fit / update.
+    ``band`` voxels of a sample, ``tree_`` `kdtree.PointTree` of ``samples_`` (m, 3),
+    ``normals_`` (m, 3), ``reach_`` (largest 8-neighbour distance of a node in the band),
+    ``n_evaluated_`` nodes evaluated by the last fit / update.
     """
 
     def __init__(self, voxel: float, band: float = 3.0, pad: float | None = None,
@@ -148,7 +150,7 @@ class SparseSDF:
         pad = self.band + 2 if self.pad is None else self.pad
         self.origin_, self.shape_ = lattice_box(samples, self.voxel, pad)
         self.samples_, self.normals_ = samples, normals
-        self.tree_ = cKDTree(samples)
+        self.tree_ = PointTree(samples)
         self.values_ = np.full(tuple(self.shape_), self._far)
         self.mask_ = np.zeros(tuple(self.shape_), bool)
         self._eighth = np.zeros(tuple(self.shape_), float)
@@ -178,7 +180,7 @@ class SparseSDF:
         if self.n_changed_ == 0:
             self.n_evaluated_ = 0
             if not np.array_equal(samples, self._old):  # the same, in another order
-                self.tree_ = cKDTree(samples)
+                self.tree_ = PointTree(samples)
             return self
         origin, shape = lattice_box(samples, self.voxel, self.band + 1)
         if 2 * self.n_changed_ > len(samples) + len(self._old) or np.any(
@@ -189,13 +191,13 @@ class SparseSDF:
             self.n_changed_ = changed
             return self
         changed = np.concatenate([samples[added], self._old[removed]])
-        self.tree_ = cKDTree(samples)
+        self.tree_ = PointTree(samples)
         # a node's 8 nearest samples can change only within its old 8-neighbour distance of a
         # change, its band membership within band + 1 voxels: the nodes a change is that near.
         # Most nodes' 8th neighbour is nearer than band + 1 voxels; the few farther ones are
         # sought apart, within the largest such distance (reach): a scan's open join, 3,271
         # changed samples: 326k candidate nodes queried -> 153k + 27k
-        tree = cKDTree(changed)
+        tree = PointTree(changed)
         nodes = self._near(tree, self._candidates(changed, self._far / self.voxel), self._far)
         if self.reach_ > self._far:
             wide = self._candidates(changed, self.reach_ / self.voxel)
@@ -238,7 +240,7 @@ class SparseSDF:
         index = np.unravel_index(flat, tuple(self.shape_))
         return self.origin_ + self.voxel * np.column_stack(index).astype(float)
 
-    def _near(self, tree: cKDTree, flat: np.ndarray, bound: float, within=None) -> np.ndarray:
+    def _near(self, tree: PointTree, flat: np.ndarray, bound: float, within=None) -> np.ndarray:
         """The nodes of ``flat`` within ``bound`` of a point of ``tree``, or within their own
         ``within`` (q,) ≤ ``bound``."""
         # a sample that moved within the tolerance kept its nodes' distances: off by as much
@@ -289,7 +291,7 @@ class SparseSDF:
         self.mask_.flat[nodes] = arrays[prefix + "mask"]
         self.samples_ = np.ascontiguousarray(arrays[prefix + "samples"], float)
         self.normals_ = np.ascontiguousarray(arrays[prefix + "normals"], float)
-        self.tree_ = cKDTree(self.samples_)
+        self.tree_ = PointTree(self.samples_)
         self.reach_ = float(meta["reach"])
         self.n_evaluated_ = self.n_changed_ = 0
         self._fitted_with = (self.voxel, self.band, self.pad, self.tolerance)

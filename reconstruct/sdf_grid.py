@@ -192,13 +192,19 @@ class SparseSDF:
             return self
         changed = np.concatenate([samples[added], self._old[removed]])
         self.tree_ = PointTree(samples)
-        # a node's 8 nearest samples can change only within its old 8-neighbour distance of a
-        # change, its band membership within band + 1 voxels: the nodes a change is that near.
-        # Most nodes' 8th neighbour is nearer than band + 1 voxels; the few farther ones are
-        # sought apart, within the largest such distance (reach): a scan's open join, 3,271
-        # changed samples: 326k candidate nodes queried -> 153k + 27k
+        # a node's 8 nearest samples (all its value depends on) can change only within its
+        # old 8-neighbour distance of a change, and a node beyond band + 1 voxels of every
+        # sample (none) gets some within band + 1 voxels of an added one: the nodes a change
+        # is that near (relief 22k, 3,200 changed samples: 45,000 nodes evaluated with every
+        # node within band + 1 voxels, 34,000 with this). Most nodes' 8th neighbour is nearer
+        # than band + 1 voxels; the few farther ones are sought apart, within the largest such
+        # distance (reach): a scan's open join, 3,271 changed samples: 326k candidate nodes
+        # queried -> 153k + 27k
         tree = PointTree(changed)
-        nodes = self._near(tree, self._candidates(changed, self._far / self.voxel), self._far)
+        nodes = self._candidates(changed, self._far / self.voxel)
+        eighth = self._eighth.flat[nodes]
+        nodes = self._near(tree, nodes, self._far,
+                           np.where((eighth > 0) & (eighth < self._far), eighth, self._far))
         if self.reach_ > self._far:
             wide = self._candidates(changed, self.reach_ / self.voxel)
             wide = wide[self._eighth.flat[wide] > self._far]

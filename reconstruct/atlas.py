@@ -76,6 +76,7 @@ from .join import (
     thin_shell,
 )
 from .join_alignment import steady_join
+from .kdtree import PointTree
 from .mesh_edges import topology, turn_faces
 from .sdf_grid import SparseSDF
 from .sheet_graph import SheetGraph
@@ -516,13 +517,11 @@ class AtlasReconstructor(BaseEstimator):
 
     def _chart_owners(self):
         """(n,) the chart (index into ``charts_``) of each input point, −1 where its chart did
-        not fit, and a cKDTree of the points that have one."""
-        from scipy.spatial import cKDTree
-
+        not fit, and a `kdtree.PointTree` of the points that have one."""
         lookup = np.full(int(self.decomposition_.labels_.max(initial=-1)) + 2, -1)
         lookup[np.asarray(self._chart_ids, int)] = np.arange(len(self._chart_ids))
         labels = lookup[self.decomposition_.labels_]  # label −1 reads the last entry, −1
-        return labels, cKDTree(self.points_[labels >= 0])
+        return labels, PointTree(self.points_[labels >= 0])
 
     def remesh(self, **params) -> trimesh.Trimesh:
         """Re-mesh every chart with new ``lam``, ``depth``, ... through its ONNX map (no

@@ -87,8 +87,8 @@ def chart_part(vertices, vertices_2d, lattice, spacing, kept, normals) -> ChartP
 def parts_of(charts, indices, owners, reach: float) -> list[ChartPart]:
     """The `ChartPart` of each of the meshed ``charts`` (an atlas's charts ``indices``): their
     vertices in their own part of the cloud (``owners``: the atlas's labels of its points and
-    a cKDTree of those with a chart; ``reach``: `join.chart_samples`), with normals, on their
-    lattice when they are pinned to one."""
+    a `kdtree.PointTree` of those with a chart; ``reach``: `join.chart_samples`), with
+    normals, on their lattice when they are pinned to one."""
     labels, tree = owners
     meshes = [chart.mesh_ for chart in charts]
     kept = chart_samples(meshes, labels, None, reach=reach, tree=tree, charts=indices)

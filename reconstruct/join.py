@@ -43,6 +43,7 @@ from scipy.spatial import cKDTree
 from .closed_grid import ClosedSDF
 from .errors import InvalidInputError
 from .grid_steps import exterior_of, farther_than, grid_box, occupancy
+from .kdtree import PointTree
 from .mesh_edges import (
     close_small_holes,
     edge_runs,
@@ -68,28 +69,28 @@ JOIN_REVISION = 5
 ACROSS_STEP = 1.0
 
 
-def chart_samples(meshes, labels, points, reach: float = np.inf, tree: cKDTree | None = None,
+def chart_samples(meshes, labels, points, reach: float = np.inf, tree: PointTree | None = None,
                   charts=None):
     """Samples of each chart's surface inside its own part of the cloud.
 
     meshes : list of trimesh.Trimesh, one per chart; labels : (n,) chart of each input point
     (−1: none); points : (n, 3); reach : vertices farther than this from every input point are
     dropped (a chart's spline outline encloses the holes inside it; its mesh spans them);
-    tree : a cKDTree of ``points[labels >= 0]`` if the caller keeps one (re-meshing does);
-    charts : the label of each mesh's chart (default 0, 1, ...).
+    tree : a `kdtree.PointTree` of ``points[labels >= 0]`` if the caller keeps one (re-meshing
+    does); charts : the label of each mesh's chart (default 0, 1, ...).
     Returns a list of (v_i,) vertex indices kept per chart."""
-    tree = cKDTree(points[labels >= 0]) if tree is None else tree
+    tree = PointTree(points[labels >= 0]) if tree is None else tree
     return [np.flatnonzero(own) for own in owned([mesh.vertices for mesh in meshes], labels,
                                                  tree, reach, charts)]
 
 
-def owned(positions, labels, tree: cKDTree, reach: float = np.inf,
+def owned(positions, labels, tree: PointTree, reach: float = np.inf,
           charts=None, others: bool = False) -> list[np.ndarray]:
     """Which of each chart's ``positions`` (c arrays (v_i, 3)) lie in its own part of the cloud:
     their nearest input point is the chart's (``labels`` (n,), −1: none; ``charts`` (c,) the
-    label of each array's chart, default 0, 1, ...; ``tree`` a cKDTree of the points with a
-    label) and within ``reach``; with ``others``, in another chart's part instead. Returns c
-    masks (v_i,)."""
+    label of each array's chart, default 0, 1, ...; ``tree`` a `kdtree.PointTree` of the points
+    with a label) and within ``reach``; with ``others``, in another chart's part instead.
+    Returns c masks (v_i,)."""
     sizes = [len(p) for p in positions]
     # threads for the join's queries; a chart's few hundred nodes (`chart_parts.unchanged`)
     # took twice as long with them as without (starting them, 0.4 ms)

@@ -18,20 +18,20 @@ from pykdtree.kdtree import KDTree
 
 
 class PointTree:
-    """``query`` of scipy's cKDTree over ``data`` (n, 3) (k nearest, an upper bound on the
+    """``query`` of scipy's cKDTree over ``data`` (n, d) (k nearest, an upper bound on the
     distance, ``workers`` threads), answered by pykdtree. Picklable (the tree is built again
     from the points)."""
 
     def __init__(self, data):
         self.data = np.ascontiguousarray(data, dtype=np.float64)
-        self.n = len(self.data)
+        self.n, self.m = self.data.shape
         self._tree = KDTree(self.data) if self.n else None
 
     def query(self, x, k: int = 1, distance_upper_bound: float = np.inf, workers: int = 1):
-        """Distances and indices of the ``k`` nearest points to each of ``x`` (m, 3), (m,)
-        each for k = 1 else (m, k), nearest first; beyond ``distance_upper_bound`` (or past
+        """Distances and indices of the ``k`` nearest points to each of ``x`` (q, d), (q,)
+        each for k = 1 else (q, k), nearest first; beyond ``distance_upper_bound`` (or past
         the n points) the distance is inf and the index n, as cKDTree's."""
-        x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 3)
+        x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, self.m)
         found = min(k, self.n)
         if found and len(x):
             _set_threads((os.cpu_count() or 1) if workers == -1 else max(int(workers), 1))

@@ -60,8 +60,8 @@ _PATTERN = _unit_disk(PATTERN_POINTS)
 def border_spacing(polygon: np.ndarray, tree: cKDTree, k: int = 16, n_stations: int = 64):
     """Median point spacing along the outline, in the points' units.
 
-    polygon : (p, 2) closed outline; tree : `scipy.spatial.cKDTree` of the (n, 2) samples it
-    encloses (built once by the caller: re-meshing calls this every time).
+    polygon : (p, 2) closed outline; tree : `kdtree.PointTree` (or a cKDTree) of the (n, 2)
+    samples it encloses (built once by the caller: re-meshing calls this every time).
     """
     k = min(int(k), tree.n)
     perimeter = float(np.sum(np.hypot(*np.diff(polygon, axis=0).T)))

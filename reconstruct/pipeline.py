@@ -49,6 +49,7 @@ from .faithfulness import (
 )
 from .io import one_line, read_state, write_state
 from .join import check_up, faces_seen_side
+from .kdtree import PointTree
 from .meshing import default_spacing, lattice_grid, lattice_nodes, mesh_inside, sample_ring
 from .mlp import AdaptiveMLP
 from .outline import border_inset, border_spacing, extend_outline
@@ -673,7 +674,7 @@ class SurfaceReconstructor(BaseEstimator):
             return polygon
         cache = self.__dict__.setdefault("_boundary_cache", {})
         if "tree" not in cache:
-            cache["tree"] = cKDTree(self.embedding_)
+            cache["tree"] = PointTree(self.embedding_)
         return extend_outline(polygon, factor * border_spacing(polygon, cache["tree"]))
 
     def sample_boundaries(self, depths) -> None:

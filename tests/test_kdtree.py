@@ -11,9 +11,10 @@ from reconstruct.kdtree import PointTree
 
 @pytest.mark.parametrize("n", [0, 1, 5, 2000])
 @pytest.mark.parametrize("m", [0, 1, 300])
-def test_the_same_neighbours_and_distances_as_ckdtree(n, m):
+@pytest.mark.parametrize("dimension", [2, 3])
+def test_the_same_neighbours_and_distances_as_ckdtree(n, m, dimension):
     rng = np.random.default_rng(n + m)
-    points, queries = rng.random((n, 3)), rng.random((m, 3))
+    points, queries = rng.random((n, dimension)), rng.random((m, dimension))
     ours, theirs = PointTree(points), cKDTree(points)
     for k in (1, 3, 8):  # k = 8 > n: the missing ones at inf, index n
         for bound in (np.inf, 0.05):  # beyond the bound: inf, index n

@@ -282,4 +282,5 @@ def _densify(polygon, step):
 def signed_area(polygon: np.ndarray) -> float:
     """Shoelace area of a (p, 2) polygon, closed or not: > 0 counter-clockwise."""
     x, y = polygon[:, 0], polygon[:, 1]
-    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+    return 0.5 * float(np.dot(x, np.concatenate([y[1:], y[:1]]))
+                       - np.dot(y, np.concatenate([x[1:], x[:1]])))

@@ -95,7 +95,7 @@ def extend_outline(polygon: np.ndarray, distance: float) -> np.ndarray:
     if distance <= 0:
         return polygon
     ring = polygon[:-1]
-    chord = np.roll(ring, -1, axis=0) - np.roll(ring, 1, axis=0)
+    chord = np.concatenate([ring[1:], ring[:1]]) - np.concatenate([ring[-1:], ring[:-1]])
     normal = np.column_stack([chord[:, 1], -chord[:, 0]])  # right of travel: outside if CCW
     normal /= np.maximum(np.hypot(normal[:, 0], normal[:, 1]), 1e-300)[:, None]
     if signed_area(polygon) < 0:

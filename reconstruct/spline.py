@@ -18,6 +18,7 @@ interleaved multi-depth interpolants are correlated along the loop and λ ≈ 2 
 
 from __future__ import annotations
 
+import functools
 import logging
 import warnings
 from typing import NamedTuple
@@ -131,8 +132,7 @@ class BoundarySpline(BaseEstimator):
         self.is_simple_ = is_simple
         self.polygon_ = polygon
         self.length_ = float(np.sum(np.hypot(*np.diff(self.polygon_, axis=0).T)))
-        self.region_ = shapely.Polygon(self.polygon_)
-        shapely.prepare(self.region_)
+        self.__dict__.pop("region_", None)  # of the last fit's polygon
         log.debug(
             "spline: %d interpolants, s=%.3g, %d knots, RMS residual %.3g",
             m,
@@ -155,6 +155,14 @@ class BoundarySpline(BaseEstimator):
         if not (np.isfinite(spacing) and spacing > 0):
             raise InvalidInputError(f"spacing must be a positive number, got {spacing}")
         return sample_ring(self.polygon_, spacing)
+
+    @functools.cached_property
+    def region_(self) -> shapely.Polygon:
+        """``polygon_`` as a prepared shapely polygon, made when first asked (`contains`; a
+        re-mesh asks none)."""
+        region = shapely.Polygon(self.polygon_)
+        shapely.prepare(region)
+        return region
 
     def contains(self, points) -> np.ndarray:
         """(n,) bool: which of ``points (n, 2)`` lie strictly inside ``polygon_``."""
@@ -205,7 +213,7 @@ def _check_interpolants(points) -> np.ndarray:
     if not np.isfinite(loop).all():
         raise InvalidInputError("the boundary interpolants have NaN or infinite coordinates")
     if len(loop):
-        moved = np.any(loop != np.roll(loop, -1, axis=0), axis=1)
+        moved = np.any(loop != np.concatenate([loop[1:], loop[:1]]), axis=1)
         loop = loop[moved] if moved.any() else loop[:1]
     distinct = len(np.unique(loop, axis=0)) if len(loop) else 0
     if distinct < MIN_INTERPOLANTS:
@@ -220,7 +228,7 @@ def _chord_parameter(loop: np.ndarray) -> np.ndarray:
     loop, so that points interleaved from several depths advance by their progress along the
     boundary rather than by their zigzag between depths."""
     smooth = _moving_average(loop, min(_PARAMETER_WINDOW, len(loop)))
-    chord = np.hypot(*(np.roll(smooth, -1, axis=0) - smooth).T)
+    chord = np.hypot(*(np.concatenate([smooth[1:], smooth[:1]]) - smooth).T)
     chord = np.maximum(chord, 1e-9 * max(chord.sum(), 1e-300))
     arc = np.concatenate([[0.0], np.cumsum(chord)])
     return arc[:-1] / arc[-1]
@@ -231,7 +239,7 @@ def _normal_scatter(loop: np.ndarray) -> float:
     across the loop: the jaggedness of the boundary samples, not the boundary's size."""
     w = min(_PARAMETER_WINDOW, len(loop))
     mean = _moving_average(loop, w)
-    tangent = np.roll(mean, -1, axis=0) - np.roll(mean, 1, axis=0)
+    tangent = np.concatenate([mean[1:], mean[:1]]) - np.concatenate([mean[-1:], mean[:-1]])
     rel = loop - mean
     offset = (tangent[:, 0] * rel[:, 1] - tangent[:, 1] * rel[:, 0]) / np.maximum(
         np.hypot(tangent[:, 0], tangent[:, 1]), 1e-300
@@ -241,8 +249,12 @@ def _normal_scatter(loop: np.ndarray) -> float:
 
 
 def _moving_average(loop: np.ndarray, w: int) -> np.ndarray:
-    shifts = np.arange(w) - w // 2
-    return np.mean([np.roll(loop, s, axis=0) for s in shifts], axis=0)
+    """Circular moving average of the (m, 2) ``loop`` over ``w`` <= m rows: the mean of the
+    loop rolled by −w // 2, ..., as slices of it thrice (np.roll's overhead was a tenth of a
+    chart's re-mesh)."""
+    m, shifts = len(loop), np.arange(w) - w // 2
+    thrice = np.concatenate([loop, loop, loop])
+    return np.mean([thrice[m - s:2 * m - s] for s in shifts], axis=0)
 
 
 def _largest_loop(polygon: np.ndarray) -> tuple[np.ndarray | None, float]:

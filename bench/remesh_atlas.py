@@ -13,12 +13,15 @@ the fit and against Poisson, how many are within the target and the slowest; the
 after a save → load in this process (a loaded closed atlas evaluates the join's grid afresh the
 first time its samples move). Last, one summary row per object and which meet the target.
 
-Half the charts of a re-mesh are meshed in a worker process (`reconstruct.remesh_worker`),
-sent the charts after an atlas's first re-mesh and ready about 1.5 s later: before timing, the
-fitted (and the loaded) atlas is re-meshed once as it is and the bench waits until the worker
-holds its charts, as an operator's next move of a λ slider would find it (the wait is printed;
-the loaded atlas's first row is timed before it). The ``worker`` column counts the charts it
-meshed.
+The charts of a re-mesh are shared with a worker process (`reconstruct.remesh_worker`: this
+process takes them from the first, the worker from the last), sent the charts after an atlas's
+first re-mesh and ready about 1.5 s later: before timing, the fitted (and the loaded) atlas is
+re-meshed once as it is and the bench waits until the worker holds its charts, as an operator's
+next move of a λ slider would find it (the wait is printed; the loaded atlas's first row is
+timed before it). The ``worker`` column counts the charts it meshed.
+
+The machine may be shared: a run's medians move by a tenth or more from one run to the next,
+so compare code with code in one session, alternating.
 """
 
 from __future__ import annotations

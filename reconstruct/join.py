@@ -434,6 +434,8 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         far = near_tree.query(mesh.triangles_center, distance_upper_bound=trim * voxel * (
             1 + 1e-9), workers=QUERY_THREADS)[0] > trim * voxel
         mesh, _ = kept_faces(mesh, ~far)
+        if len(mesh.faces) == 0:  # every face far from the data
+            return mesh
     runs = edge_runs(np.asarray(mesh.faces))
     piece = piece_labels(mesh.faces, runs)
     volumes = face_volumes(mesh) if closed else None  # (a closed join's faces are all kept

@@ -334,3 +334,13 @@ def test_turned_faces_have_turned_normals():
     turn_faces(sphere)
     np.testing.assert_allclose(sphere.face_normals, -before, atol=1e-12)
     assert sphere.volume < 0
+
+
+def test_an_open_join_whose_faces_are_all_far_from_the_data_is_empty():
+    # every face trimmed: an empty mesh, not an error (np.max of no pieces raised)
+    rng = np.random.default_rng(0)
+    xy = rng.random((2000, 2))
+    samples = np.c_[xy, np.zeros(len(xy))]
+    normals = np.tile([0.0, 0.0, 1.0], (len(xy), 1))
+    mesh = implicit_mesh(samples, normals, voxel=0.05, data=np.full((5, 3), 50.0))
+    assert len(mesh.faces) == 0

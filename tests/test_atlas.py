@@ -774,3 +774,15 @@ def test_a_chart_with_too_few_interpolants_at_a_saved_depth_is_kept(monkeypatch)
     chart.remesh(depth=1)
     with pytest.raises(InvalidInputError, match="needs 8"):
         chart.remesh(depth=3)
+
+
+def test_a_small_chart_gets_layers_narrowed_to_its_points():
+    from reconstruct.chart_fit import POINTS_PER_PARAMETER, network_parameters, sized_layers
+
+    assert network_parameters((10, 9)) == 3 * 10 + 11 * 9 + 10 * 3  # 2 -> 10 -> 9 -> 3
+    assert sized_layers((10, 9), 5000) == (10, 9)  # a large chart keeps the first's
+    for n_points in (91, 200, 300):
+        narrowed = sized_layers((10, 9), n_points)
+        assert network_parameters(narrowed) <= n_points / POINTS_PER_PARAMETER
+        assert narrowed[0] < 10 and narrowed[1] < 9
+    assert sized_layers((10, 9), 3) == (2, 2)  # no narrower than 2

@@ -46,6 +46,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 from sklearn.base import BaseEstimator
 
 from .errors import DegenerateCloudError, InvalidInputError
+from .mesh_edges import half_edges
 
 log = logging.getLogger(__name__)
 
@@ -372,7 +373,7 @@ def _dijkstra_path(points, inward, c1, c2, k, reach) -> np.ndarray | None:
             simplices = Delaunay(points).simplices
         except QhullError:  # collinear or coincident members: the kNN graph alone
             simplices = np.empty((0, 3), dtype=np.int64)
-        sides = simplices.take([0, 1, 1, 2, 2, 0], axis=1).reshape(-1, 2)
+        sides = half_edges(simplices)
         short = np.hypot(*(points[sides[:, 0]] - points[sides[:, 1]]).T) <= reach
         pairs = np.vstack([pairs, sides[short]])
     low, high = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])

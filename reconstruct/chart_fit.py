@@ -132,7 +132,7 @@ def fit_chart(points, lam: float, depth: int, random_state, n_neighbors: int | N
 def network_parameters(layers: tuple[int, ...]) -> int:
     """Weights and biases of a chart's network, 2 inputs → ``layers`` → 3 outputs."""
     widths = (2, *layers, 3)
-    return sum((a + 1) * b for a, b in zip(widths[:-1], widths[1:], strict=False))
+    return sum((a + 1) * b for a, b in zip(widths[:-1], widths[1:], strict=True))
 
 
 def sized_layers(layers: tuple[int, ...], n_points: int) -> tuple[int, ...]:

@@ -15,6 +15,7 @@ import shapely
 from scipy.spatial import Delaunay
 
 from .errors import FitError
+from .mesh_edges import half_edges
 
 #: Most nodes the box of a chart's 2D grid may hold: a grid spacing far below the points' (or
 #: an outline extended far beyond them) would take the machine's memory (a washer chart at
@@ -250,7 +251,7 @@ def _full_region_border(full, index):
 def _stitched(band_faces, border_edges, n_boundary, n_vertices):
     """True when the band triangles share the full-cell region's border edges instead of
     overlapping it: no edge has more than two faces, and no open edge runs between grid nodes."""
-    edges = np.vstack([band_faces.take([0, 1, 1, 2, 2, 0], axis=1).reshape(-1, 2), border_edges])
+    edges = np.vstack([half_edges(band_faces), border_edges])
     edges = np.sort(edges, axis=1)
     key = edges[:, 0] * n_vertices + edges[:, 1]
     _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)

@@ -26,9 +26,9 @@ from __future__ import annotations
 
 import numpy as np
 import shapely
-from scipy.spatial import cKDTree
 
 from .errors import FitError
+from .kdtree import PointTree
 from .meshing import rasterize, sample_ring, signed_area
 
 #: Mean inset of the fitted boundary spline below the true border, in local point spacings,
@@ -57,10 +57,10 @@ def _unit_disk(n: int) -> np.ndarray:
 _PATTERN = _unit_disk(PATTERN_POINTS)
 
 
-def border_spacing(polygon: np.ndarray, tree: cKDTree, k: int = 16, n_stations: int = 64):
+def border_spacing(polygon: np.ndarray, tree: PointTree, k: int = 16, n_stations: int = 64):
     """Median point spacing along the outline, in the points' units.
 
-    polygon : (p, 2) closed outline; tree : `kdtree.PointTree` (or a cKDTree) of the (n, 2)
+    polygon : (p, 2) closed outline; tree : `kdtree.PointTree` of the (n, 2)
     samples it encloses (built once by the caller: re-meshing calls this every time).
     """
     k = min(int(k), tree.n)

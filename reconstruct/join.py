@@ -47,6 +47,7 @@ from .kdtree import PointTree
 from .mesh_edges import (
     close_small_holes,
     edge_runs,
+    face_centres,
     face_volumes,
     kept_faces,
     piece_labels,
@@ -412,7 +413,6 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
         return kept  # the same samples: the same mesh
     for name in ("mesh_", "mesh_key_", "topology_"):  # of other samples: kept no longer
         vars(sdf).pop(name, None)
-    tree = sdf.tree_
     if closed:
         if not hasattr(sdf, "values_"):  # loaded without its grid, and its mesh not kept
             sdf.fit(samples, normals, kept_open, uncharted)
@@ -430,9 +430,13 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     if len(mesh.faces) == 0:
         return mesh
     if not closed:
-        near_tree = tree if data is None else cKDTree(np.asarray(data, float))
-        far = near_tree.query(mesh.triangles_center, distance_upper_bound=trim * voxel * (
-            1 + 1e-9), workers=QUERY_THREADS)[0] > trim * voxel
+        centres = face_centres(mesh)
+        if data is None:
+            far = sdf.farther_than(centres, trim * voxel)
+        else:
+            far = cKDTree(np.asarray(data, float)).query(
+                centres, distance_upper_bound=trim * voxel * (1 + 1e-9),
+                workers=QUERY_THREADS)[0] > trim * voxel
         mesh, _ = kept_faces(mesh, ~far)
         if len(mesh.faces) == 0:  # every face far from the data
             return mesh

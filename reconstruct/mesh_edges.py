@@ -36,6 +36,17 @@ def face_volumes(mesh: trimesh.Trimesh) -> np.ndarray:
     return ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
 
 
+def face_centres(mesh: trimesh.Trimesh) -> np.ndarray:
+    """(f, 3) the centre of each face: trimesh's ``triangles_center`` to the bit, gathered
+    from columns (its (f, 3, 3) triangles and mean: 7 ms of 54k faces, this 0.5)."""
+    columns = np.ascontiguousarray(np.asarray(mesh.vertices).T)
+    corners = np.ascontiguousarray(np.asarray(mesh.faces).T)
+    total = columns.take(corners[0], axis=1)
+    total += columns.take(corners[1], axis=1)
+    total += columns.take(corners[2], axis=1)
+    return (total / 3).T
+
+
 def split_nonmanifold(mesh: trimesh.Trimesh, runs=None) -> trimesh.Trimesh:
     """``mesh`` with every vertex where faces meet in more than one fan (or only along an edge
     shared by more than two faces) split into one vertex per fan: where marching cubes lets two

@@ -154,6 +154,7 @@ class SparseSDF:
         self.values_ = np.full(tuple(self.shape_), self._far)
         self.mask_ = np.zeros(tuple(self.shape_), bool)
         self._eighth = np.zeros(tuple(self.shape_), float)
+        self._first = np.full(tuple(self.shape_), np.nan)
         nodes = self._candidates(samples, self.band + 1)  # a box round each sample
         self.n_evaluated_ = len(nodes)
         self._evaluate(self._near(self.tree_, nodes, self._far))
@@ -205,18 +206,48 @@ class SparseSDF:
         eighth = self._eighth.flat[nodes]
         nodes = self._near(tree, nodes, self._far,
                            np.where((eighth > 0) & (eighth < self._far), eighth, self._far))
-        if self.reach_ > self._far:
-            wide = self._candidates(changed, self.reach_ / self.voxel)
-            wide = wide[self._eighth.flat[wide] > self._far]
+        if self.reach_ > self._far:  # (all of them: relief 22k, 17,000 of 640,000 nodes; a
+            # box of reach round the changes to pick them from took longer than querying them)
+            wide = np.flatnonzero(self._eighth > self._far)
             wide = self._near(tree, wide, self.reach_, self._eighth.flat[wide])
             nodes = union([nodes, wide])
         self.values_.flat[nodes] = self._far
         self.mask_.flat[nodes] = False
         self._eighth.flat[nodes] = 0
+        self._first.flat[nodes] = np.nan
         self._evaluate(nodes)
         self.n_evaluated_ = len(nodes)
         self.reach_ = max(self.reach_, float(self._eighth.flat[nodes].max(initial=0)))
         return self
+
+    def farther_than(self, points, distance: float) -> np.ndarray:
+        """(q,) bool whether each of ``points`` (q, 3), inside the grid, is farther than
+        ``distance`` from every sample: decided by the triangle inequality from the distances
+        of its cell's eight corners to their nearest samples where that decides it (an open
+        join's face centres: all but about 1 %), by the tree for the rest (relief 22k, 64,000
+        centres: 5.5 ms against the tree's 10)."""
+        points = np.asarray(points, float)
+        where = (points - self.origin_) / self.voxel
+        cells = np.clip(np.floor(where).astype(np.int64), 0, self.shape_ - 2)
+        where -= cells  # within the cell, in voxels
+        squares = (where**2, (1 - where) ** 2)  # to its low and high corners, per axis
+        flat = np.ravel_multi_index(tuple(cells.T), tuple(self.shape_))
+        known = self._first.reshape(-1)
+        strides = np.asarray(self._first.strides) // self._first.itemsize
+        upper = np.full(len(points), np.inf)
+        lower = np.full(len(points), -np.inf)
+        for corner in np.ndindex(2, 2, 2):
+            gap = self.voxel * np.sqrt(squares[corner[0]][:, 0] + squares[corner[1]][:, 1]
+                                       + squares[corner[2]][:, 2])
+            first = known.take(flat + strides @ corner)  # NaN: not known
+            np.fmin(upper, first + gap, out=upper)
+            np.fmax(lower, first - gap, out=lower)
+        beyond = lower > distance * (1 + 1e-9)
+        unsure = ~(beyond | (upper <= distance * (1 - 1e-9)))
+        beyond[unsure] = self.tree_.query(
+            points[unsure], distance_upper_bound=distance * (1 + 1e-9),
+            workers=QUERY_THREADS)[0] > distance
+        return beyond
 
     # -- internals -------------------------------------------------------------------------
     def _changes(self, samples, normals):
@@ -264,6 +295,7 @@ class SparseSDF:
         where = flat[near]
         self.values_.flat[where] = values[near]
         self._eighth.flat[where] = distances[near, -1]
+        self._first.flat[where] = distances[near, 0]
         self.mask_.flat[where] = distances[near, 0] <= self.band * self.voxel
 
     # -- persistence ---------------------------------------------------------------------------
@@ -276,6 +308,7 @@ class SparseSDF:
                 "reach": self.reach_, "mesh_key": list(getattr(self, "mesh_key_", []))}
         arrays = {"origin": self.origin_, "shape": self.shape_, "nodes": nodes,
                   "values": self.values_.flat[nodes], "eighth": self._eighth.flat[nodes],
+                  "first": self._first.flat[nodes],
                   "mask": self.mask_.flat[nodes], "samples": self.samples_,
                   "normals": self.normals_}
         return meta, {prefix + name: np.asarray(value)
@@ -293,6 +326,9 @@ class SparseSDF:
         self.values_.flat[nodes] = arrays[prefix + "values"]
         self._eighth = np.zeros(shape, float)
         self._eighth.flat[nodes] = arrays[prefix + "eighth"]
+        self._first = np.full(shape, np.nan)  # not known in a state saved before it was kept
+        if prefix + "first" in arrays:
+            self._first.flat[nodes] = arrays[prefix + "first"]
         self.mask_ = np.zeros(shape, bool)
         self.mask_.flat[nodes] = arrays[prefix + "mask"]
         self.samples_ = np.ascontiguousarray(arrays[prefix + "samples"], float)

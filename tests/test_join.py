@@ -16,6 +16,7 @@ from reconstruct.join import (
 )
 from reconstruct.mesh_edges import (
     edge_runs,
+    face_centres,
     kept_faces,
     split_nonmanifold,
     topology,
@@ -248,6 +249,14 @@ def test_kept_faces_drops_faces_and_vertices_and_keeps_the_edge_runs():
         for got, want in zip(runs, edge_runs(np.asarray(kept.faces)), strict=True):
             np.testing.assert_array_equal(got, want)
         assert kept_faces(mesh, keep)[1] is None
+
+
+def test_face_centres_are_trimeshs_to_the_bit():
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    mesh.vertices = mesh.vertices * [1.0, 2.5, 0.3] + np.random.default_rng(0).normal(
+        0, 0.01, mesh.vertices.shape)
+    np.testing.assert_array_equal(face_centres(mesh), mesh.triangles_center)
+    assert face_centres(trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int))).shape == (0, 3)
 
 
 def stretched_grid():

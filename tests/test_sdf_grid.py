@@ -122,6 +122,29 @@ def test_a_saved_grid_continues_where_it_stopped():
     np.testing.assert_array_equal(loaded.values_, sdf.values_)
 
 
+def test_farther_than_answers_as_the_tree_does():
+    """The grid's own nearest distances decide most points; the answer is the tree's at every
+    point, after an update, and from a state saved with or without those distances."""
+    samples, normals = sphere_samples(3)
+    samples, normals = samples[samples[:, 2] < 0.6], normals[samples[:, 2] < 0.6]  # a hole
+    sdf = SparseSDF(voxel=0.1, band=2.0).fit(samples, normals)
+    rng = np.random.default_rng(1)
+    inside = sdf.origin_ + 0.1 * (sdf.shape_ - 1) * rng.random((20000, 3))
+    on_surface = samples[rng.integers(len(samples), size=5000)] + rng.normal(0, 0.05, (5000, 3))
+    points = np.vstack([inside, on_surface])
+    for distance in (0.05, 0.15, 0.3):
+        truth = cKDTree(sdf.samples_).query(points)[0] > distance
+        assert np.array_equal(sdf.farther_than(points, distance), truth)
+        assert 0 < truth.sum() < len(points)
+    bumped = samples * np.where(samples[:, 2:] > 0.3, 1.04, 1.0)
+    sdf.update(bumped, normals)
+    meta, arrays = sdf.state()
+    old = SparseSDF.from_state(meta, {k: v for k, v in arrays.items() if k != "first"})
+    for grid in (sdf, SparseSDF.from_state(meta, arrays), old):
+        truth = cKDTree(bumped).query(points)[0] > 0.15
+        assert np.array_equal(grid.farther_than(points, 0.15), truth)
+
+
 def test_changed_rows_finds_a_change_between_unchanged_ends():
     rng = np.random.default_rng(3)
     old, old_normals = rng.normal(size=(100, 3)), rng.normal(size=(100, 3))

@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 
 from .faithfulness import signed_residuals
 from .join import ExteriorProbe, exterior_votes
-from .sdf_grid import QUERY_THREADS, union
+from .sdf_grid import QUERY_THREADS
 
 #: A chart faces out of the object when its exterior vote (`join.exterior_votes`) is this clear.
 VOTE_LIMIT = 0.5
@@ -130,10 +130,7 @@ class UnchartedTracker:
         else:
             far = last[0].copy()
             if len(moved):
-                if "_tree" not in self.__dict__:
-                    self._tree = cKDTree(self.points)
-                near = self._tree.query_ball_point(moved, reach * (1 + 1e-6))
-                near = union([np.asarray(i, np.int64) for i in near])
+                near = self._near(moved, reach * (1 + 1e-6))
                 far[near] = tree.query(self.points[near], distance_upper_bound=reach * (
                     1 + 1e-9))[0] > reach
         if last is not None and np.array_equal(far, last[0]):
@@ -143,7 +140,24 @@ class UnchartedTracker:
         self._last = (far, uncharted)
         return uncharted
 
+    def _near(self, moved: np.ndarray, reach: float) -> np.ndarray:
+        """(k,) indices of the points in the cells of side ``reach`` next to a ``moved`` sample's
+        (q, 3): every point within ``reach`` of one, and some more (figurine 22k, 1,800 moved
+        samples: 3 ms with their new look-up, against 18 for cKDTree's balls, lists of lists)."""
+        if self.__dict__.get("_cells", (None,))[0] != reach:
+            low = self.points.min(axis=0)
+            cells = np.floor((self.points - low) / reach).astype(np.int64)
+            self._cells = (reach, low, cells.max(axis=0) + 5, cells + 2)  # two cells to spare
+        _, low, shape, cells = self._cells
+        at = np.floor((moved - low) / reach).astype(np.int64) + 2
+        at = at[np.all((at >= 1) & (at < shape - 1), axis=1)]  # beyond: farther from every point
+        marked = np.zeros(tuple(shape), bool)
+        marked[tuple((at[:, None, :] + _NEIGHBOUR_CELLS).reshape(-1, 3).T)] = True
+        return np.flatnonzero(marked[tuple(cells.T)])
 
+
+#: (27, 3) a cell and its neighbours, as offsets.
+_NEIGHBOUR_CELLS = np.stack(np.meshgrid(*[(-1, 0, 1)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
 #: Beyond this share of the samples moved, `UnchartedTracker` looks every point up again.
 _MOVED_SHARE = 0.1
 

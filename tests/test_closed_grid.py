@@ -185,7 +185,7 @@ def test_the_uncharted_tracker_finds_what_a_fresh_look_finds():
     tracker = UnchartedTracker(points, spacing)
     steps = [samples, samples[:-300], np.concatenate([samples[:500], samples[700:]]),
              np.concatenate([samples[:500], samples[700:900] + 0.02, samples[900:]]),
-             samples[::2], samples]
+             samples[::2], samples, np.concatenate([samples, [[9.0, -9.0, 9.0], [0.0, 0.0, 1.3]]])]
     sizes, before, looked_round = [], None, 0
     for step, now in enumerate(steps):
         tree = cKDTree(now)
@@ -197,7 +197,8 @@ def test_the_uncharted_tracker_finds_what_a_fresh_look_finds():
         sizes.append(len(found))
         before = now
     assert len(set(sizes)) >= 3, sizes  # the changes do change what is uncharted
-    assert looked_round == 3  # three steps looked up only the points round the moved samples
+    assert looked_round == 4  # four steps looked up only the points round the moved samples
+    # (one moved far beyond the points, one beside them)
 
 
 def _rows_not_in_both(old, new):

@@ -9,7 +9,13 @@ from scipy.spatial import cKDTree
 
 from reconstruct.chart_sides import UnchartedTracker, uncharted_points
 from reconstruct.closed_grid import BOX_SLACK, ClosedSDF
-from reconstruct.grid_steps import farther_than, grey_opening3, squared_distance, voter_sides
+from reconstruct.grid_steps import (
+    farther_than,
+    free_pockets,
+    grey_opening3,
+    squared_distance,
+    voter_sides,
+)
 from reconstruct.join import implicit_mesh
 
 GRIDS = ["_occupied", "_free", "_exterior", "_closing", "_planes", "_nearest", "_ahead",
@@ -205,3 +211,16 @@ def _rows_not_in_both(old, new):
     """The rows (q, 3) of ``old`` or ``new`` that the other does not have."""
     a, b = {tuple(r) for r in old}, {tuple(r) for r in new}
     return np.array(sorted(a ^ b), float).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("share", [0.0, 0.3, 0.55, 0.8, 1.0])
+def test_the_free_pockets_are_scipys_pieces(share):
+    rng = np.random.default_rng(int(10 * share))
+    free = rng.random((23, 17, 31)) < share
+    free[5:9, 5:9, 5:9] = False  # a shell round an enclosed pocket
+    free[6:8, 6:8, 6:8] = True
+    pieces, border, _ = free_pockets(free)
+    expected, count = ndimage.label(free)
+    np.testing.assert_array_equal(pieces, expected)
+    assert pieces.dtype == expected.dtype and len(border) == count + 1
+    assert not border[0] and not border[pieces[7, 7, 7]]  # the pocket is enclosed

@@ -3,7 +3,7 @@ on the same cloud (issue 13: a 50k-vertex atlas mesh re-meshes in ≤ 300 ms).
 
     python -m bench.remesh_atlas [--objects torus mug ...] [--points 22000] [--voxel 0.5]
 
-For each awkward object and the open relief (default all six, about 9 minutes): fits
+For each awkward object and the open relief (default all six, about 2 minutes): fits
 `AtlasReconstructor` (σ 0.5 % of the diagonal, the relief 1 %), states the mesh's vertex count,
 then re-meshes it through the charts' ONNX maps with several λ and a depth change and prints
 each re-mesh's time (wall, and CPU time of this process: the machine may be shared), split into

@@ -373,8 +373,11 @@ class AtlasReconstructor(BaseEstimator):
             chart_normals = [s * n for n, s in zip(unturned, self.signs_, strict=True)]
         if self.closed_:  # a flap of a chart folded over an edge faces in: turn it out
             probe = self._exterior_probe(chart_samples_, voxel)
-            chart_normals = [np.where(probe.facing_in(s, n)[:, None], -n, n)
-                             for s, n in zip(chart_samples_, chart_normals, strict=True)]
+            inward = np.split(probe.facing_in(np.concatenate(chart_samples_),  # all at once
+                                              np.concatenate(chart_normals)),
+                              np.cumsum([len(s) for s in chart_samples_])[:-1])
+            chart_normals = [np.where(turn[:, None], -n, n)
+                             for turn, n in zip(inward, chart_normals, strict=True)]
         else:  # an open join trims its mesh to its samples: no slits
             self._fill_stretched(parts, chart_samples_, chart_normals, reach)
         samples, normals, kept_open = [], [], []

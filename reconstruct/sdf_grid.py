@@ -221,11 +221,11 @@ class SparseSDF:
         return self
 
     def farther_than(self, points, distance: float) -> np.ndarray:
-        """(q,) bool whether each of ``points`` (q, 3), inside the grid, is farther than
-        ``distance`` from every sample: decided by the triangle inequality from the distances
-        of its cell's eight corners to their nearest samples where that decides it (an open
-        join's face centres: all but about 1 %), by the tree for the rest (relief 22k, 64,000
-        centres: 5.5 ms against the tree's 10)."""
+        """(q,) bool whether each of ``points`` (q, 3) is farther than ``distance`` from every
+        sample: decided by the triangle inequality from the distances of its cell's eight
+        corners (the nearest cell's, off the grid) to their nearest samples where that decides
+        it (an open join's face centres: all but about 1 %), by the tree for the rest (relief
+        22k, 64,000 centres: 5.5 ms against the tree's 10)."""
         points = np.asarray(points, float)
         where = (points - self.origin_) / self.voxel
         cells = np.clip(np.floor(where).astype(np.int64), 0, self.shape_ - 2)

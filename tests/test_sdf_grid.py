@@ -131,7 +131,8 @@ def test_farther_than_answers_as_the_tree_does():
     rng = np.random.default_rng(1)
     inside = sdf.origin_ + 0.1 * (sdf.shape_ - 1) * rng.random((20000, 3))
     on_surface = samples[rng.integers(len(samples), size=5000)] + rng.normal(0, 0.05, (5000, 3))
-    points = np.vstack([inside, on_surface])
+    beyond = sdf.origin_ + 0.1 * (sdf.shape_ - 1) * rng.uniform(-0.5, 1.5, (3000, 3))
+    points = np.vstack([inside, on_surface, beyond])  # (some beyond the grid's box)
     for distance in (0.05, 0.15, 0.3):
         truth = cKDTree(sdf.samples_).query(points)[0] > distance
         assert np.array_equal(sdf.farther_than(points, distance), truth)

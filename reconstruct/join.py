@@ -430,7 +430,7 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     if len(mesh.faces) == 0:
         return mesh
     if not closed:
-        centres = face_centres(mesh)
+        centres = face_centres(mesh.vertices, mesh.faces)
         if data is None:
             far = sdf.farther_than(centres, trim * voxel)
         else:

@@ -29,7 +29,7 @@ import shapely
 
 from .errors import FitError
 from .kdtree import PointTree
-from .meshing import rasterize, sample_ring, signed_area
+from .meshing import next_rows, previous_rows, rasterize, sample_ring, signed_area
 
 #: Mean inset of the fitted boundary spline below the true border, in local point spacings,
 #: by boundary depth (measured as described above; deeper loops lie further in).
@@ -95,7 +95,7 @@ def extend_outline(polygon: np.ndarray, distance: float) -> np.ndarray:
     if distance <= 0:
         return polygon
     ring = polygon[:-1]
-    chord = np.concatenate([ring[1:], ring[:1]]) - np.concatenate([ring[-1:], ring[:-1]])
+    chord = next_rows(ring) - previous_rows(ring)
     normal = np.column_stack([chord[:, 1], -chord[:, 0]])  # right of travel: outside if CCW
     normal /= np.maximum(np.hypot(normal[:, 0], normal[:, 1]), 1e-300)[:, None]
     if signed_area(polygon) < 0:

@@ -29,7 +29,7 @@ from scipy.interpolate import splev, splprep
 from sklearn.base import BaseEstimator
 
 from .errors import FitError, InvalidInputError, NotFittedError, ReconstructionWarning
-from .meshing import sample_ring, signed_area
+from .meshing import next_rows, previous_rows, sample_ring, signed_area
 
 log = logging.getLogger(__name__)
 
@@ -213,7 +213,7 @@ def _check_interpolants(points) -> np.ndarray:
     if not np.isfinite(loop).all():
         raise InvalidInputError("the boundary interpolants have NaN or infinite coordinates")
     if len(loop):
-        moved = np.any(loop != np.concatenate([loop[1:], loop[:1]]), axis=1)
+        moved = np.any(loop != next_rows(loop), axis=1)
         loop = loop[moved] if moved.any() else loop[:1]
     distinct = len(np.unique(loop, axis=0)) if len(loop) else 0
     if distinct < MIN_INTERPOLANTS:
@@ -228,7 +228,7 @@ def _chord_parameter(loop: np.ndarray) -> np.ndarray:
     loop, so that points interleaved from several depths advance by their progress along the
     boundary rather than by their zigzag between depths."""
     smooth = _moving_average(loop, min(_PARAMETER_WINDOW, len(loop)))
-    chord = np.hypot(*(np.concatenate([smooth[1:], smooth[:1]]) - smooth).T)
+    chord = np.hypot(*(next_rows(smooth) - smooth).T)
     chord = np.maximum(chord, 1e-9 * max(chord.sum(), 1e-300))
     arc = np.concatenate([[0.0], np.cumsum(chord)])
     return arc[:-1] / arc[-1]
@@ -239,7 +239,7 @@ def _normal_scatter(loop: np.ndarray) -> float:
     across the loop: the jaggedness of the boundary samples, not the boundary's size."""
     w = min(_PARAMETER_WINDOW, len(loop))
     mean = _moving_average(loop, w)
-    tangent = np.concatenate([mean[1:], mean[:1]]) - np.concatenate([mean[-1:], mean[:-1]])
+    tangent = next_rows(mean) - previous_rows(mean)
     rel = loop - mean
     offset = (tangent[:, 0] * rel[:, 1] - tangent[:, 1] * rel[:, 0]) / np.maximum(
         np.hypot(tangent[:, 0], tangent[:, 1]), 1e-300

@@ -412,7 +412,11 @@ class ClosedSDF:
         return evaluated
 
     def _update_smoothed(self, touched: np.ndarray) -> None:
-        """Smooth again round the nodes of the blended grid that changed (``touched``)."""
+        """Smooth again round the nodes of the blended grid that changed (``touched``). A
+        re-mesh of the mug or the sheets (22k) changes nodes all over its surface: their box
+        is 90-100 % of the grid (the figurine's 26 %, the hook's 13 %). Its halves smoothed in
+        two threads (the opening and ndimage's Gaussian release the GIL) took 22 -> 17 ms
+        alone, but no gain showed in the join's time (2026-12-06)."""
         reach = _SMOOTH_REACH
         for box in boxes_round(touched, self.shape_, reach):
             outer, inner = grown(box, reach, self.shape_)

@@ -43,15 +43,17 @@ def mesh_plan(views: int = 6, **fields) -> dict:
     return {**capture_plan(views, **fields), "reconstruction": dict(SMALL_RECONSTRUCTION)}
 
 
-def wait_until(predicate, timeout: float = 30.0, interval: float = 0.02, what: str = "condition"):
-    """Poll ``predicate`` until it returns something truthy (returned); fail after ``timeout``."""
+def wait_until(predicate, timeout: float = 30.0, interval: float = 0.02, what="condition"):
+    """Poll ``predicate`` until it returns something truthy (returned); fail after ``timeout``,
+    saying ``what`` was awaited (a callable: asked then, for what was seen instead)."""
     deadline = time.monotonic() + timeout
     while True:
         value = predicate()
         if value:
             return value
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+            said = what() if callable(what) else what
+            raise AssertionError(f"timed out after {timeout:g} s waiting for {said}")
         time.sleep(interval)
 
 

@@ -48,10 +48,14 @@ def test_pause_resume_and_cancel_reach_the_child(tmp_path):
     runner = ProcessRunner(spec(tmp_path, views=50, settle_s=0.1))
     runner.start()
     runner.pause()
-    wait_until(lambda: runner.state == "paused", what="the child to pause")
+
+    def seen(awaited):  # what the child said instead (a flake seen once in CI, 2026-12-06)
+        return lambda: (f"the child to {awaited}: it is {runner.state}, its last documents "
+                        f"{[d['kind'] for d in runner.documents[-5:]]}")
+    wait_until(lambda: runner.state == "paused", what=seen("pause"))
     runner.pause()  # already paused: nothing to do
     runner.resume()
-    wait_until(lambda: runner.state == "running", what="the child to resume")
+    wait_until(lambda: runner.state == "running", what=seen("resume"))
     runner.cancel()
     assert runner.wait(60) == "interrupted"
     assert runner.reason == "cancelled by the user"

@@ -11,6 +11,7 @@ from .chart_parts import parts_from_state, parts_state
 from .charts import ChartDecomposition
 from .closed_grid import ClosedSDF
 from .errors import NotFittedError
+from .join import ExteriorProbe
 from .sdf_grid import SparseSDF
 
 ATLAS_FORMAT = "scanstation-atlas/1"
@@ -26,9 +27,13 @@ def atlas_state(atlas) -> tuple[dict, dict[str, np.ndarray]]:
     chart (flat, cut at ``chart_offsets``) and the ``signs`` (c,) — what re-joining needs,
     and no network — the join's last samples and mesh (`SparseSDF.state` with its grid,
     so a loaded open atlas re-meshes incrementally too; `ClosedSDF.state` without: a closed
-    one's first re-mesh that moves a sample evaluates its grid afresh), ``join_*``, and
+    one's grid is evaluated for the saved samples in a thread from its first re-mesh on,
+    `atlas_remesh`), ``join_*``, and
     each chart's part of the join (`chart_parts.parts_state`, ``part<i>_*``: a loaded atlas's
-    first re-mesh skips the charts whose part cannot change, as the atlas saved would)."""
+    first re-mesh skips the charts whose part cannot change, as the atlas saved would), and
+    a closed join's `join.ExteriorProbe` (``probe_*``: it turns the charts' folded flaps as
+    the atlas saved does; built again from the samples it was saved with, it was another
+    probe, and a direct re-mesh gave another mesh: hook 22k, 1,176 of 36,432 vertices)."""
     if not hasattr(atlas, "charts_"):
         raise NotFittedError("nothing to save: fit() the atlas first")
     charts, arrays = [], {}
@@ -59,6 +64,10 @@ def atlas_state(atlas) -> tuple[dict, dict[str, np.ndarray]]:
     parts = atlas.__dict__.get("_parts")
     if parts is not None and len(parts) == len(atlas.charts_):
         arrays.update(parts_state(parts))
+    probe = atlas.__dict__.get("_probe")
+    if isinstance(probe, ExteriorProbe):  # a closed join turns its charts' folded flaps by it
+        meta["probe"] = {"voxel": probe.voxel, "step": probe.step}
+        arrays.update(probe_origin=probe.origin, probe_exterior=probe.exterior)
     return meta, arrays
 
 
@@ -99,6 +108,9 @@ def atlas_from_state(cls, meta: dict, arrays: dict):
     if atlas.thin_.shape != atlas.shells_.shape:
         raise ValueError("its thin parts and shells do not agree")
     atlas.timings_ = {}
+    if "probe" in meta:  # (states saved before it was kept build it again from their samples)
+        atlas._probe = ExteriorProbe.restored(arrays["probe_origin"], arrays["probe_exterior"],
+                                              **meta["probe"])
     if "join" in meta:  # the join's grid and last mesh: the first re-mesh is incremental
         kind = ClosedSDF if meta["join"].get("kind") == "closed" else SparseSDF
         atlas._sdf = kind.from_state(meta["join"], arrays, prefix="join_")

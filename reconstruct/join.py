@@ -311,6 +311,18 @@ class ExteriorProbe:
             self.exterior &= ~(free & ~plugged)
         self.voxel, self.step = voxel, (band + 1.5) * voxel
 
+    @classmethod
+    def restored(cls, origin, exterior, voxel: float, step: float) -> ExteriorProbe:
+        """The probe whose grid (``origin`` (3,), ``exterior`` (shape) bool), ``voxel`` and
+        ``step`` were saved (an atlas's state: a loaded atlas turns its samples as the atlas
+        saved did, not by a probe of the samples it was saved with)."""
+        probe = cls.__new__(cls)
+        probe.origin = np.asarray(origin, float)
+        probe.exterior = np.asarray(exterior, bool)
+        probe.shape = np.asarray(probe.exterior.shape)
+        probe.voxel, probe.step = float(voxel), float(step)
+        return probe
+
     def sides(self, samples, normals) -> tuple[np.ndarray, np.ndarray]:
         """(m,) bool each: whether the probe in front of each of ``samples`` (m, 3) along its
         ``normals`` (m, 3) is outside, and whether the one behind it is."""

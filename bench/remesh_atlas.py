@@ -10,9 +10,8 @@ each re-mesh's time (wall, and CPU time of this process: the machine may be shar
 the charts' re-meshing (with how many charts it meshed) and the join (wall), with how many join
 samples moved and how many grid nodes were re-evaluated; then the median re-mesh time against
 the fit and against Poisson, how many are within the target and the slowest; then the same
-after a save → load in this process (a loaded closed atlas's join grid is evaluated for its
-saved samples in a thread from its first re-mesh on, and followed from there the first time its
-samples move). Last, one summary row per object and which meet the target.
+after a save → load in this process (a loaded closed atlas evaluates the join's grid afresh the
+first time its samples move). Last, one summary row per object and which meet the target.
 
 The charts of a re-mesh are shared with a worker process (`reconstruct.remesh_worker`: this
 process takes them from the first, the worker from the last), sent the charts after an atlas's

@@ -14,7 +14,6 @@ import trimesh
 
 from .chart_fit import n_chart_workers
 from .chart_parts import ChartPart
-from .closed_grid import ClosedSDF
 from .errors import DegenerateCloudError, FitError, ReconstructionError, ReconstructionWarning
 from .io import one_line
 from .join import kept_mesh
@@ -60,7 +59,6 @@ def _remesh(atlas, params: dict, worker: ChartWorker | None) -> trimesh.Trimesh:
         parts = None
     if parts is not None and "_owners" not in atlas.__dict__:  # loaded with its parts
         atlas._owners = atlas._chart_owners()
-    _evaluate_loaded_grid(atlas)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ReconstructionWarning)
         if worker is not None and worker.holds(atlas):  # (the join's parts taken, but for
@@ -112,18 +110,6 @@ def _mesh_stands(atlas) -> bool:
     atlas.watertight_, atlas.winding_consistent_, atlas.euler_ = topology(mesh.faces)
     atlas._joined_up = atlas._up_key()
     return True
-
-
-def _evaluate_loaded_grid(atlas) -> None:
-    """A closed atlas loaded from its state keeps its join's samples, not its grid, which its
-    first re-mesh's join evaluated afresh (hook 22k: 320 of 550 ms). Start evaluating it for
-    the saved samples in a thread (`ClosedSDF.evaluate_held`: its KD-tree look-ups and numpy
-    passes release the GIL) while the charts re-mesh, or, after a re-mesh that needs no join,
-    before the next; the join then follows only the samples that moved."""
-    grid = atlas.__dict__.get("_sdf")
-    if isinstance(grid, ClosedSDF) and "samples_" in vars(grid):  # (a no-op once evaluated)
-        saved, tracker = grid.samples_, atlas._uncharted_tracker()
-        grid.evaluate_held(lambda tree, moved: tracker(saved, tree, moved))
 
 
 def _worker_for(atlas) -> ChartWorker | None:

@@ -27,8 +27,7 @@ def atlas_state(atlas) -> tuple[dict, dict[str, np.ndarray]]:
     chart (flat, cut at ``chart_offsets``) and the ``signs`` (c,) — what re-joining needs,
     and no network — the join's last samples and mesh (`SparseSDF.state` with its grid,
     so a loaded open atlas re-meshes incrementally too; `ClosedSDF.state` without: a closed
-    one's grid is evaluated for the saved samples in a thread from its first re-mesh on,
-    `atlas_remesh`), ``join_*``, and
+    one's first re-mesh that moves a sample evaluates its grid afresh), ``join_*``, and
     each chart's part of the join (`chart_parts.parts_state`, ``part<i>_*``: a loaded atlas's
     first re-mesh skips the charts whose part cannot change, as the atlas saved would), and
     a closed join's `join.ExteriorProbe` (``probe_*``: it turns the charts' folded flaps as

@@ -23,10 +23,6 @@ re-evaluated its whole grid before (0.9–1.5 s of a 1.1–1.7 s re-mesh).
 
 from __future__ import annotations
 
-import logging
-import threading
-import weakref
-
 import numpy as np
 from scipy import ndimage
 
@@ -54,10 +50,6 @@ from .sdf_grid import (
     restore_kept_mesh,
     union,
 )
-
-log = logging.getLogger(__name__)
-#: The threads of `ClosedSDF.evaluate_held` running, by grid.
-_EVALUATING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 #: Voxels from the nearest sample within which a closed join trusts the tangent planes alone.
 _TRUSTED = 1.0
@@ -132,7 +124,6 @@ class ClosedSDF:
 
     def follow(self, samples, normals, kept_open=None, uncharted=None) -> ClosedSDF:
         """`update` when fitted with the present parameters, else `fit`. Returns self."""
-        self._wait()
         if getattr(self, "_fitted_with", None) == self._params:
             return self.update(samples, normals, kept_open, uncharted)
         return self.fit(samples, normals, kept_open, uncharted)
@@ -143,40 +134,11 @@ class ClosedSDF:
         represents, or a callable of the samples' `kdtree.PointTree` and of the samples (q, 3)
         added and removed since its last call (None: all are new) giving them. The box fitted
         or loaded last is kept if it holds the samples with the seal's pad. Returns self."""
-        self._wait()
         self._take(samples, normals, kept_open)
         return self._fit_taken(uncharted)
 
-    def evaluate_held(self, uncharted=None) -> None:
-        """Start evaluating a grid loaded without it (`from_state`) for the samples it holds,
-        in a thread: the next `update` then follows only the samples that moved (the same grid
-        as evaluating it afresh for them). ``uncharted`` as for `fit`, of these samples. Every
-        other method waits for it; a failure is logged and leaves the grid to be evaluated by
-        the next `update`. No-op when evaluated or being evaluated."""
-        if self in _EVALUATING or hasattr(self, "_occupied") or "samples_" not in vars(self):
-            return
-        thread = threading.Thread(target=self._evaluate_held, args=(uncharted,),
-                                  name="join-grid", daemon=True)
-        _EVALUATING[self] = thread
-        thread.start()
-
-    def _evaluate_held(self, uncharted) -> None:
-        try:
-            self._fit_taken(uncharted, counted=False)
-        except Exception as exc:  # noqa: BLE001 - the next update evaluates it afresh
-            vars(self).pop("_occupied", None)
-            log.warning("evaluating a loaded join grid failed (%s: %s); evaluated at the join",
-                        type(exc).__name__, exc)
-
-    def _wait(self) -> None:
-        """Wait for `evaluate_held`'s thread, if one runs."""
-        thread = _EVALUATING.pop(self, None)
-        if thread is not None:
-            thread.join()
-
-    def _fit_taken(self, uncharted, counted: bool = True) -> ClosedSDF:
-        """`fit` to the samples `_take` kept; ``counted``: set ``n_changed_`` and
-        ``n_evaluated_`` (not for `evaluate_held`'s samples, which did not change)."""
+    def _fit_taken(self, uncharted) -> ClosedSDF:
+        """`fit` to the samples `_take` kept."""
         seal, voxel = self._seal, self.voxel
         if not self._holds(self.samples_):
             shift = self.shift % 1.0  # the low side spares a voxel more when shifted
@@ -202,15 +164,13 @@ class ClosedSDF:
         self._blend_at(near)
         self.values_ = self._smoothed(self._values, self._holding(tuple(slice(0, n)
                                                                         for n in shape)))
-        if counted:
-            self.n_changed_, self.n_evaluated_ = len(self.samples_), len(near)
+        self.n_changed_, self.n_evaluated_ = len(self.samples_), len(near)
         self._fitted_with = self._params
         return self
 
     def update(self, samples, normals, kept_open=None, uncharted=None) -> ClosedSDF:
         """Move to new samples (same arguments as `fit`), re-evaluating only round those that
         changed; a fresh `fit` when the samples leave the grid's box or most of them changed."""
-        self._wait()
         old, old_normals, old_open, old_tree = (self.samples_, self.normals_, self.kept_open_,
                                                 self.tree_)
         self._take(samples, normals, kept_open)
@@ -466,7 +426,6 @@ class ClosedSDF:
         """Marching cubes of ``values_`` at 0: vertices (v, 3) float32 in voxel units from
         ``origin_``, faces (f, 3), as skimage's, marched again only round the nodes that
         changed since the last call (`reconstruct.marching.KeptMarch`)."""
-        self._wait()
         if "_march" not in self.__dict__:
             self._march = KeptMarch()
         return self._march(self.values_, self.voxel)
@@ -477,7 +436,6 @@ class ClosedSDF:
         ``prefix`` + ...): a loaded grid gives that mesh back for the same samples and
         evaluates afresh, on the same box, for others (the whole grid would be several times
         the atlas's size)."""
-        self._wait()
         meta = {"kind": "closed", "params": {"voxel": self.voxel, "band": self.band,
                                              "seal": self.seal, "tolerance": self.tolerance,
                                              "shift": self.shift},

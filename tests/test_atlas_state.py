@@ -54,25 +54,21 @@ def test_a_loaded_atlas_remeshes_to_the_same_mesh(saved):
     model.remesh(lam=2.0)  # as the other tests expect it
 
 
-def test_a_loaded_atlas_remeshed_at_once_keeps_the_saved_probe_and_follows_its_grid(saved):
-    """Re-meshed with new parameters straight after loading (`scanstation remesh state.npz
-    --lam ...`), a loaded atlas turns its charts' folded flaps by the saved probe, not by one
-    built again from the samples it was saved with (hook 22k: 1,176 of 36,432 vertices
-    differed from the atlas saved), and its join's grid, evaluated for the saved samples while
-    the charts re-mesh, follows the samples that moved to the grid evaluated afresh."""
+def test_a_loaded_atlas_keeps_the_saved_probe(saved):
+    """A loaded atlas turns its charts' folded flaps by the saved probe, not by one built again
+    from the samples it was saved with (hook 22k re-meshed at λ 2 straight after loading:
+    1,176 of 36,432 vertices differed from the atlas saved, and from the loaded atlas
+    re-meshed as saved first)."""
     model, path = saved
     loaded = AtlasReconstructor.load(path)
     probe = model.atlas_._probe
     np.testing.assert_array_equal(loaded._probe.exterior, probe.exterior)
     np.testing.assert_array_equal(loaded._probe.origin, probe.origin)
     assert (loaded._probe.voxel, loaded._probe.step) == (probe.voxel, probe.step)
-    followed = loaded.remesh(lam=6.0)  # two charts meshed, four samples moved
-    afresh = AtlasReconstructor.load(path)
-    del afresh._sdf  # its join's grid built and evaluated for the new samples
-    same_mesh(followed, afresh.remesh(lam=6.0))
-    assert afresh.remesh_counts_["samples moved"] == len(afresh.samples_)
-    assert 0 < loaded.remesh_counts_["nodes evaluated"] < afresh.remesh_counts_[
-        "nodes evaluated"] / 10
+    at_once = loaded.remesh(lam=6.0)  # two charts meshed, four samples moved
+    shown_first = AtlasReconstructor.load(path)
+    same_mesh(shown_first.remesh(), model.mesh_)
+    same_mesh(at_once, shown_first.remesh(lam=6.0))
 
 
 def test_a_loaded_atlas_needs_no_torch(saved, tmp_path):

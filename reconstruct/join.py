@@ -316,9 +316,12 @@ class ExteriorProbe:
         """The probe whose grid (``origin`` (3,), ``exterior`` (shape) bool), ``voxel`` and
         ``step`` were saved (an atlas's state: a loaded atlas turns its samples as the atlas
         saved did, not by a probe of the samples it was saved with)."""
+        origin, exterior = np.asarray(origin, float), np.asarray(exterior)
+        if origin.shape != (3,) or exterior.ndim != 3 or exterior.dtype != bool:
+            raise ValueError(f"its exterior probe is not a grid (origin {origin.shape}, "
+                             f"exterior {exterior.shape} {exterior.dtype})")
         probe = cls.__new__(cls)
-        probe.origin = np.asarray(origin, float)
-        probe.exterior = np.asarray(exterior, bool)
+        probe.origin, probe.exterior = origin, exterior
         probe.shape = np.asarray(probe.exterior.shape)
         probe.voxel, probe.step = float(voxel), float(step)
         return probe

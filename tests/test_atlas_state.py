@@ -1,6 +1,7 @@
 """A fitted atlas saves and loads: all charts' ONNX maps, the partition and the signs; the loaded
 one re-meshes without torch to the same mesh; a damaged file fails in one line."""
 
+import io
 import subprocess
 import sys
 import zipfile
@@ -108,10 +109,20 @@ def damaged_copies(path, tmp_path):
         for item in source.infolist():
             if item.filename != "chart1_onnx.npy":
                 target.writestr(item, source.read(item.filename))
-    return {"truncated": truncated, "flipped": flipped, "missing": missing}
+    flat_probe = tmp_path / "flat_probe.npz"  # well formed, its probe's grid a flat array
+    with zipfile.ZipFile(path) as source, zipfile.ZipFile(flat_probe, "w") as target:
+        for item in source.infolist():
+            if item.filename == "probe_exterior.npy":
+                flat = io.BytesIO()
+                np.save(flat, np.zeros(8, bool))
+                target.writestr(item, flat.getvalue())
+            else:
+                target.writestr(item, source.read(item.filename))
+    return {"truncated": truncated, "flipped": flipped, "missing": missing,
+            "flat_probe": flat_probe}
 
 
-@pytest.mark.parametrize("damage", ["truncated", "flipped", "missing"])
+@pytest.mark.parametrize("damage", ["truncated", "flipped", "missing", "flat_probe"])
 def test_a_damaged_atlas_file_is_one_line_error(saved, tmp_path, capsys, damage):
     _, path = saved
     bad = damaged_copies(path, tmp_path)[damage]

@@ -64,7 +64,8 @@ def atlas_state(atlas) -> tuple[dict, dict[str, np.ndarray]]:
     if parts is not None and len(parts) == len(atlas.charts_):
         arrays.update(parts_state(parts))
     probe = atlas.__dict__.get("_probe")
-    if isinstance(probe, ExteriorProbe):  # a closed join turns its charts' folded flaps by it
+    if atlas.closed_ and isinstance(probe, ExteriorProbe):  # it turns a closed join's flaps
+        # (an open join never asks it: not saved)
         meta["probe"] = {"voxel": probe.voxel, "step": probe.step}
         arrays.update(probe_origin=probe.origin, probe_exterior=probe.exterior)
     return meta, arrays

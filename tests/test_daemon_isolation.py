@@ -8,12 +8,13 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 from pathlib import Path
 
 import pytest
 from daemon_helpers import capture_plan, station_urls, wait_until
 
-from capture.daemon.isolation import ProcessRunner, RunSpec
+from capture.daemon.isolation import Outbox, ProcessRunner, RunSpec
 from capture.plan import ScanPlan
 
 
@@ -63,6 +64,49 @@ def test_pause_resume_and_cancel_reach_the_child(tmp_path):
         runner.pause()
     assert [d["kind"] for d in runner.documents if d["kind"] in ("paused", "resumed")] == \
         ["paused", "resumed"]
+
+
+class PausingMeanwhile:
+    """A runner whose scan pauses on its own thread (and says so) just after the first read of
+    its state, as a pause command's answer reads it."""
+
+    def __init__(self):
+        self._state, self.outbox, self.reads = "running", None, 0
+
+    @property
+    def state(self) -> str:
+        value = self._state
+        self.reads += 1
+        if self.reads == 1:
+            scan = threading.Thread(target=self._pause)
+            scan.start()
+            scan.join(1.0)  # done at once, unless it waits for the outbox's lock
+        return value
+
+    def _pause(self) -> None:
+        self._state = "paused"
+        self.outbox("doc", {"kind": "paused"})
+
+
+class Pipe:
+    def __init__(self):
+        self.sent = []
+
+    def send(self, message) -> None:
+        self.sent.append(message)
+
+
+def test_the_state_sent_last_is_the_runners_last():
+    """The command thread's "state" and the scan thread's "paused" may cross: the message
+    that arrives last must carry the newer state (a race seen once in CI: the daemon kept a
+    paused scan as running)."""
+    runner, pipe = PausingMeanwhile(), Pipe()
+    runner.outbox = Outbox(pipe, runner)
+    answer = threading.Thread(target=runner.outbox, args=("state",))
+    answer.start()
+    answer.join(10)
+    wait_until(lambda: len(pipe.sent) == 2, 10, what="both messages")
+    assert pipe.sent[-1][1] == runner.state == "paused"
 
 
 def test_a_scan_that_cannot_start_raises_its_cause(tmp_path):

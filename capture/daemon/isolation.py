@@ -192,17 +192,13 @@ class ProcessRunner:
                 message = documents.recv()
             except (EOFError, OSError):
                 break
-            kind = message[0]
+            kind, self._state = message[0], message[1]  # the child's state as it sent it
             if kind == "doc":
-                self._state = message[2]
-                self._deliver(message[1])
+                self._deliver(message[2])
             elif kind == "started":
-                self._state = message[1]
                 self._ready.set()
-            elif kind == "state":
-                self._state = message[1]
             elif kind == "end":
-                self._state, self.reason, ended = message[1], message[2], True
+                self.reason, ended = message[2], True
         self._process.join()
         if not ended and self._cancelled_at_start:
             self._state = "interrupted"
@@ -307,6 +303,22 @@ def folder_in_use(folder: Path) -> bool:
     return False
 
 
+class Outbox:
+    """The child's messages to the daemon: ``(kind, state, *payload)``, the runner's state
+    read as the message goes into the pipe, under one lock. (Read before the lock, a state
+    could arrive after a message another thread sent meanwhile with a newer one: a pause's
+    "state: running" after the scan's own "paused", and the daemon saw a paused scan run.)"""
+
+    def __init__(self, pipe, runner):
+        self.pipe = pipe
+        self.runner = runner
+        self._lock = threading.Lock()
+
+    def __call__(self, kind: str, *payload) -> None:
+        with self._lock:
+            self.pipe.send((kind, self.runner.state, *payload))
+
+
 def _child(documents, commands, spec: RunSpec) -> None:
     """The child process: run the scan, forward its documents, obey commands."""
     os.umask(0o077)
@@ -322,24 +334,19 @@ def _child(documents, commands, spec: RunSpec) -> None:
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     for name in LOGGERS:
         logging.getLogger(name).setLevel(spec.log_level)
-    lock = threading.Lock()
-
-    def send(message) -> None:
-        with lock:
-            documents.send(message)
-
     try:
         runner = build_runner(spec)
     except Exception as exc:
-        send(("end", "failed", str(exc)))
+        documents.send(("end", "failed", str(exc)))
         return
+    send = Outbox(documents, runner)
 
     def forward(doc) -> None:
         data = as_dict(doc)
         if data.get("kind") == "mesh":
             write_live_mesh(getattr(runner.engine, "mesh", None), spec.out_dir)
         with contextlib.suppress(OSError, ValueError):  # the daemon is gone: the scan stops
-            send(("doc", data, runner.state))
+            send("doc", data)
 
     runner.subscribe(forward)
     try:
@@ -351,9 +358,9 @@ def _child(documents, commands, spec: RunSpec) -> None:
             budget = (spec.object_memory_bytes or 0) / 2**20
             reason = (f"out of memory opening the station: the object needs more than the "
                       f"scan's budget of {budget:g} MiB ({reason})")
-        send(("end", runner.state, reason))
+        send("end", reason)
         return
-    send(("started", runner.state))
+    send("started")
 
     def obey() -> None:
         while True:
@@ -370,11 +377,11 @@ def _child(documents, commands, spec: RunSpec) -> None:
                 getattr(runner, command)()
             except RuntimeError as exc:
                 log.info("%s refused: %s", command, exc)
-            send(("state", runner.state))
+            send("state")
 
     threading.Thread(target=obey, name="scan-commands", daemon=True).start()
     runner.wait()
     if runner.executor is not None:
         runner.executor.shutdown(wait=False, cancel_futures=True)
     with contextlib.suppress(OSError, ValueError):  # no daemon left to tell
-        send(("end", runner.state, runner.reason))
+        send("end", runner.reason)

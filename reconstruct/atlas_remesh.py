@@ -37,12 +37,16 @@ REMESH_THREADS = 2
 
 def remesh_atlas(atlas, params: dict) -> trimesh.Trimesh:
     """`AtlasReconstructor.remesh` of the fitted ``atlas`` with ``params`` (lam, depth, ...):
-    sets its ``mesh_``, ``timings_`` ("remesh charts", "join", "remesh") and
-    ``remesh_counts_``, and returns the mesh. The charts are shared with a worker process
-    once it holds them (`reconstruct.remesh_worker`), sent after the first re-mesh."""
+    sets its ``mesh_``, its ``lam`` and ``depth`` when given, ``timings_`` ("remesh charts",
+    "join", "remesh") and ``remesh_counts_``, and returns the mesh. The charts are shared
+    with a worker process once it holds them (`reconstruct.remesh_worker`), sent after the
+    first re-mesh."""
     worker = _worker_for(atlas)
     try:
         mesh = _remesh(atlas, params, worker)
+        # the atlas's parameters say what its charts were last meshed with (as a chart's do),
+        # and what a state saved now re-meshes with
+        vars(atlas).update({k: params[k] for k in ("lam", "depth") if params.get(k) is not None})
         if worker is not None and not worker.sent(atlas):  # for the next re-meshes
             worker.send(atlas, atlas.reach * atlas.decomposition_.spacing_)
         return mesh

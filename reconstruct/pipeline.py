@@ -771,8 +771,9 @@ class SurfaceReconstructor(BaseEstimator):
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> SurfaceReconstructor:
-        """Read a state written by `save` (one chart or an atlas); the result can `remesh()` at
-        once. A damaged or foreign file raises `InvalidInputError` in one line."""
+        """Read a state written by `save` (one chart or an atlas) or `AtlasReconstructor.save`;
+        the result can `remesh()` at once. A damaged or foreign file raises
+        `InvalidInputError` in one line."""
         from .atlas import ATLAS_FORMAT, AtlasReconstructor
 
         meta, arrays = read_state(path)
@@ -782,9 +783,14 @@ class SurfaceReconstructor(BaseEstimator):
         try:
             if kind == STATE_FORMAT:
                 return cls.from_state(meta, arrays)
-            self = cls(**meta["reconstructor"]["params"])
-            self.atlas_ = AtlasReconstructor.from_state(meta, arrays)
-            self.atlas_reason_ = str(meta["reconstructor"]["atlas_reason"])
+            atlas = AtlasReconstructor.from_state(meta, arrays)
+            outer = meta.get("reconstructor")
+            if outer is None:  # `AtlasReconstructor.save`'s: its parameters the ones both have
+                shared = cls().get_params(deep=False).keys() & atlas.get_params(deep=False)
+                outer = {"params": {k: getattr(atlas, k) for k in shared},
+                         "atlas_reason": "saved as an atlas (AtlasReconstructor.save)"}
+            self = cls(**outer["params"])
+            self.atlas_, self.atlas_reason_ = atlas, str(outer["atlas_reason"])
             return self
         except Exception as exc:  # a missing array, a bad header field, a broken ONNX model
             raise InvalidInputError(

@@ -52,6 +52,10 @@ def test_a_loaded_atlas_remeshes_to_the_same_mesh(saved):
         np.testing.assert_array_equal(before, after)
     alone = AtlasReconstructor.load(model.atlas_.save(path.with_name("alone.npz")))
     same_mesh(alone.remesh(), model.mesh_)  # and writes its own
+    wrapped = SurfaceReconstructor.load(path.with_name("alone.npz"))  # which the whole reads
+    assert (wrapped.lam, wrapped.depth) == (model.lam, model.depth) == (3.0, 3)  # re-meshed last
+    assert "AtlasReconstructor.save" in wrapped.atlas_reason_
+    same_mesh(wrapped.remesh(), model.mesh_)
     model.remesh(lam=2.0)  # as the other tests expect it
 
 
@@ -93,6 +97,9 @@ def test_the_remesh_command_takes_a_saved_atlas(saved, tmp_path):
     _, path = saved
     out = tmp_path / "remeshed.stl"
     assert main(["--quiet", "remesh", str(path), "-o", str(out), "--lam", "3"]) == 0
+    assert trimesh.load(out, force="mesh").is_watertight
+    alone = saved[0].atlas_.save(tmp_path / "alone.npz")  # `AtlasReconstructor.save`'s too
+    assert main(["--quiet", "remesh", str(alone), "-o", str(out), "--lam", "3"]) == 0
     assert trimesh.load(out, force="mesh").is_watertight
 
 

@@ -11,6 +11,7 @@ is logged and skipped).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -108,6 +109,11 @@ class RunLifecycle:
         return document
 
     # -- requests ---------------------------------------------------------------------------------
+    # No lock orders the requests and the checkpoint (a subscriber may ask for one while a
+    # document is emitted under the documents' lock, and the daemon holds its own while it
+    # asks): the checkpoint clears the resume flag before it looks again whether it was
+    # cancelled or the pause withdrawn, and a request sets its flags in the order that makes
+    # every interleaving end as asked (a request lost there left the scan paused for good).
     def pause(self) -> None:
         """Ask the scan to pause at its next safe point (between frames or views)."""
         if self._state == "paused":
@@ -118,8 +124,9 @@ class RunLifecycle:
 
     def resume(self) -> None:
         """Resume a paused scan (after a lost device: try to reconnect it again)."""
-        if self._state == "running":
+        if self._state == "running":  # the pause withdrawn, or met at once if being taken
             self._pause_requested.clear()
+            self._resume_requested.set()
             return
         if self._state != "paused":
             raise InvalidTransition(f"cannot resume a scan that is {self._state}")
@@ -130,9 +137,10 @@ class RunLifecycle:
         ``reason``: who or what cancelled)."""
         self.cancel_reason = reason
         if self._state == "idle":
-            self._transition("cancel")
-            self.reason = "cancelled before it started"
-            return
+            with contextlib.suppress(InvalidTransition):  # else it started meanwhile
+                self._transition("cancel")
+                self.reason = "cancelled before it started"
+                return
         self._cancel_requested.set()
         self._resume_requested.set()
 
@@ -140,16 +148,21 @@ class RunLifecycle:
     def _checkpoint(self, index: int) -> None:
         if self._cancel_requested.is_set():
             raise Cancelled
-        if self._pause_requested.is_set():
-            self._pause_requested.clear()
-            self._resume_requested.clear()
-            self._transition("pause")
-            self._emit(PausedDocument, reason="user", message="paused by the user",
-                       view_index=index)
-            self._block_until_resumed()
-            self._transition("resume")
-            self._emit(ResumedDocument, message=f"resumed by the user at view {index + 1}",
-                       view_index=index)
+        if not self._pause_requested.is_set():
+            return
+        self._resume_requested.clear()  # a resume or cancel from here on ends the pause
+        if self._cancel_requested.is_set():  # one before it: looked at again
+            raise Cancelled
+        if not self._pause_requested.is_set():  # withdrawn by a resume before it
+            return
+        self._pause_requested.clear()
+        self._transition("pause")
+        self._emit(PausedDocument, reason="user", message="paused by the user",
+                   view_index=index)
+        self._block_until_resumed()
+        self._transition("resume")
+        self._emit(ResumedDocument, message=f"resumed by the user at view {index + 1}",
+                   view_index=index)
 
     def _block_until_resumed(self) -> None:
         self._resume_requested.wait()

@@ -108,6 +108,7 @@ class ScanRunner(RunLifecycle):
         self.image_shape: tuple[int, int] | None = None
         self.error: BaseException | None = None
         self._said_empty = False  # a view without points was reported
+        self._stopped = False  # the stop document was emitted: no document after it
         self._limits: collections.Counter = collections.Counter()  # views reaching each limit
 
     @classmethod
@@ -340,8 +341,13 @@ class ScanRunner(RunLifecycle):
                    elapsed_s=time.monotonic() - self._started)
 
     def _on_mesh(self, engine: IncrementalEngine, figures: dict) -> None:
-        self._emit(MeshDocument, version=figures["version"], views=figures["views"],
-                   final=bool(figures.get("final")), figures=figures)
+        with self._lock:  # a fit running at a cancel or failure may end after the stop document
+            if self._stopped:
+                log.info("mesh v%d ended after the scan stopped: not published (scan.json and "
+                         "the scan's files are the stop's)", figures["version"])
+                return
+            self._emit(MeshDocument, version=figures["version"], views=figures["views"],
+                       final=bool(figures.get("final")), figures=figures)
 
     # -- the end -------------------------------------------------------------------------------
     def _finish(self) -> None:
@@ -382,8 +388,11 @@ class ScanRunner(RunLifecycle):
                 files = self.outputs.final_files()
             except Exception as exc:
                 log.error("could not list the scan's files: %s", exc)
-            self._emit(StopDocument, state=state, reason=reason, views_done=self._views_done,
-                       views_total=self.plan.n_views, files=files)
+            with self._lock:
+                self._stopped = True
+                self._emit(StopDocument, state=state, reason=reason,
+                           views_done=self._views_done, views_total=self.plan.n_views,
+                           files=files)
         except Exception as exc:
             log.error("ending the scan: %s", exc)
         finally:

@@ -109,6 +109,15 @@ def test_the_state_sent_last_is_the_runners_last():
     assert pipe.sent[-1][1] == runner.state == "paused"
 
 
+def test_a_pause_just_after_a_resume_reaches_the_child(tmp_path):
+    """The child's "resumed" may not be back yet: the pause is sent all the same (the child
+    decides on its runner's state)."""
+    runner = ProcessRunner(spec(tmp_path))
+    runner._state, runner._commands = "paused", Pipe()  # a resume sent, not yet answered
+    runner.pause()
+    assert runner._commands.sent == ["pause"]
+
+
 def test_a_scan_that_cannot_start_raises_its_cause(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
@@ -125,6 +134,17 @@ def test_a_child_that_dies_fails_its_scan(tmp_path):
     os.kill(runner.pid, signal.SIGKILL)
     assert runner.wait(60) == "failed"
     assert runner.reason == "the scan process died (exit code -9)"
+
+
+def test_a_stop_signal_once_started_is_a_cancel(tmp_path):
+    """A cancel that finds the daemon's copy still "idle" signals the child (its devices may
+    hang while opening): once the scan started, that ends it as a cancel, recording closed."""
+    runner = ProcessRunner(spec(tmp_path, views=50, settle_s=0.1))
+    runner.start()
+    os.kill(runner.pid, signal.SIGTERM)
+    assert runner.wait(60) == "interrupted"
+    assert runner.reason == "cancelled by the user"
+    assert runner.documents[-1]["kind"] == "stop"
 
 
 def test_children_die_with_the_daemon(tmp_path):

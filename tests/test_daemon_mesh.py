@@ -9,7 +9,14 @@ import json
 import numpy as np
 import pytest
 import trimesh
-from daemon_helpers import MESH_CAMERA, capture_plan, mesh_plan, station_urls, wait_for_state
+from daemon_helpers import (
+    MESH_CAMERA,
+    capture_plan,
+    mesh_plan,
+    station_urls,
+    wait_for_state,
+    wait_until,
+)
 from fastapi.testclient import TestClient
 
 from capture.daemon.app import create_app
@@ -139,6 +146,47 @@ def test_no_reprocess_resume_or_delete_while_a_refine_runs(finished):
         jobs.refiner.remesh = real
     assert answers[0].status_code == 200, answers[0].text
     assert client.post(f"/api/v1/scans/{scan['id']}/refine", json={"lam": 2.0}).status_code == 200
+
+
+def test_two_refines_of_a_scan_store_in_the_order_they_ran(finished):
+    """The second refine starts once the first stored its mesh: the current mesh is the last
+    one made, and a refine given only λ takes the depth the first one set."""
+    import threading
+
+    client, scan, _ = finished
+    jobs = client.app.app.state.jobs
+    real, calls, release = jobs.refiner.remesh, [], threading.Event()
+
+    def held_remesh(scan_id, folder, lam, depth):
+        calls.append((lam, depth))
+        if len(calls) == 1:
+            release.wait(30)
+        return real(scan_id, folder, lam, depth)
+
+    jobs.refiner.remesh = held_remesh
+    before = client.get(f"/api/v1/scans/{scan['id']}").json()["mesh_version"]
+    answers = []
+    try:
+        first = threading.Thread(target=lambda: answers.append(client.post(
+            f"/api/v1/scans/{scan['id']}/refine", json={"lam": 3.0, "depth": 3})))
+        first.start()
+        wait_until(lambda: len(calls) == 1, what="the first refine")
+        second = threading.Thread(target=lambda: answers.append(client.post(
+            f"/api/v1/scans/{scan['id']}/refine", json={"lam": 2.0})))
+        second.start()
+        second.join(0.5)
+        assert len(calls) == 1  # the second waits for the first
+        release.set()
+        first.join(60)
+        second.join(60)
+    finally:
+        release.set()
+        jobs.refiner.remesh = real
+    assert [a.status_code for a in answers] == [200, 200]
+    assert calls == [(3.0, 3), (2.0, 3)]
+    now = client.get(f"/api/v1/scans/{scan['id']}").json()
+    assert now["mesh_version"] == before + 2
+    assert (now["mesh_params"]["lam"], now["mesh_params"]["depth"]) == (2.0, 3)
 
 
 def test_a_refine_that_fails_is_422_with_the_cause_and_keeps_the_mesh(finished):

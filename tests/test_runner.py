@@ -10,6 +10,7 @@ import pytest
 from scan_helpers import CAMERA, FAST_PARAMS, plan
 
 from capture.combine import combine_depths
+from capture.lifecycle import Cancelled, RunLifecycle
 from capture.plan import PlanError, ScanPlan
 from capture.recording import read_recording
 from capture.runner import TRANSITIONS, CaptureError, InvalidTransition, ScanRunner
@@ -61,6 +62,16 @@ def test_a_scan_emits_start_views_progress_stop_in_order(tmp_path):
     np.testing.assert_array_equal(recording.views[2].frames[1], views[2].frames[1])
 
 
+def test_no_document_follows_the_stop(tmp_path):
+    """A fit running when a scan is cancelled or fails ends after the stop document: its mesh
+    is not published (the scan's files and scan.json are the stop's)."""
+    runner = runner_for(tmp_path, plan(2))
+    assert runner.start().wait(timeout=60) == "done"
+    count = len(runner.documents)
+    runner._on_mesh(None, {"version": 7, "views": 2})  # as the engine's thread would call it
+    assert len(runner.documents) == count and runner.documents[-1].kind == "stop"
+
+
 def test_invalid_transitions_raise_and_the_table_is_closed(tmp_path):
     runner = runner_for(tmp_path, plan(2))
     with pytest.raises(InvalidTransition, match="cannot resume a scan that is idle"):
@@ -107,6 +118,57 @@ def test_pause_resume_then_cancel_keeps_the_recorded_views(tmp_path):
     done = docs.count("view")
     assert 2 <= done < 6
     assert [v.index for v in read_recording(tmp_path / "scan").views] == list(range(done))
+
+
+class RequestWhileClearing(threading.Event):
+    """A request flag whose first clear by the worker (the checkpoint taking a pause) lets
+    ``request`` run to its end on another thread first."""
+
+    def __init__(self, request):
+        super().__init__()
+        self.request, self.worker = request, threading.current_thread()
+
+    def clear(self) -> None:
+        if self.request is not None and threading.current_thread() is self.worker:
+            request, self.request = self.request, None
+            other = threading.Thread(target=request)
+            other.start()
+            other.join(5.0)
+        super().clear()
+
+
+def paused_at_checkpoint(request, flag: str) -> str:
+    """A running lifecycle whose checkpoint takes a pause while ``request`` comes, as it
+    clears ``flag``; what the checkpoint did within 10 s: "returned", "cancelled" or "stuck"
+    (still paused)."""
+    run = RunLifecycle()
+    run._transition("start")
+    outcome = ["stuck"]
+
+    def worker():
+        hooked = RequestWhileClearing(lambda: request(run))
+        if getattr(run, flag).is_set():
+            hooked.set()
+        setattr(run, flag, hooked)
+        run.pause()
+        try:
+            run._checkpoint(0)
+            outcome[0] = "returned"
+        except Cancelled:
+            outcome[0] = "cancelled"
+
+    thread = threading.Thread(target=worker, daemon=True)
+    thread.start()
+    thread.join(10)
+    return outcome[0]
+
+
+@pytest.mark.parametrize("flag", ["_pause_requested", "_resume_requested"])
+def test_a_cancel_or_resume_as_a_pause_is_taken_is_never_lost(flag):
+    """A cancel or resume that comes while the checkpoint takes a pause ends it (else its
+    resume flag was cleared after it, and the scan stayed paused for good)."""
+    assert paused_at_checkpoint(lambda run: run.cancel(), flag) == "cancelled"
+    assert paused_at_checkpoint(lambda run: run.resume(), flag) == "returned"
 
 
 def test_unplugged_turntable_pauses_reconnects_and_resumes_at_that_view(tmp_path):

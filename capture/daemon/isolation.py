@@ -22,6 +22,7 @@ import dataclasses
 import logging
 import multiprocessing
 import os
+import signal
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -150,9 +151,9 @@ class ProcessRunner:
         return self
 
     def pause(self) -> None:
-        if self._state == "paused":
-            return
-        if self._state != "running":
+        """Ask the child to pause; it decides on its runner's own state (ours may be a resume
+        behind: returning on "paused" here lost a pause asked just after a resume)."""
+        if self._state not in ("running", "paused"):
             raise RuntimeError(f"cannot pause a scan that is {self._state}")
         self._send("pause")
 
@@ -361,6 +362,10 @@ def _child(documents, commands, spec: RunSpec) -> None:
         send("end", reason)
         return
     send("started")
+    # the daemon's cancel while it has not yet read "started" stops the child with SIGTERM,
+    # meant for devices that take their timeout to open: from here on that is a cancel, which
+    # ends the recording as any cancel does
+    signal.signal(signal.SIGTERM, lambda *_: runner.cancel())
 
     def obey() -> None:
         while True:
@@ -377,7 +382,8 @@ def _child(documents, commands, spec: RunSpec) -> None:
                 getattr(runner, command)()
             except RuntimeError as exc:
                 log.info("%s refused: %s", command, exc)
-            send("state")
+            with contextlib.suppress(OSError, ValueError):  # the daemon is gone meanwhile
+                send("state")
 
     threading.Thread(target=obey, name="scan-commands", daemon=True).start()
     runner.wait()

@@ -157,6 +157,7 @@ class ScanJobs:
         self._live: dict[str, _Live] = {}
         self._queue: collections.OrderedDict[str, _Queued] = collections.OrderedDict()
         self._refining: dict[str, int] = {}  # scan id -> refines under way
+        self._refine_locks: dict[str, threading.Lock] = {}  # scan id -> its refines' turn
         self._held: dict[str, str] = {}  # device key -> scan id
         self._stopping = False
 
@@ -325,23 +326,29 @@ class ScanJobs:
             if self._active(scan_id) or record.state not in FINAL_STATES:
                 raise Conflict(f"scan {scan_id} is {record.state}: refine it once it ended")
             self._refining[scan_id] = self._refining.get(scan_id, 0) + 1
+            one_at_a_time = self._refine_locks.setdefault(scan_id, threading.Lock())
         try:
-            current = record.mesh_params  # a value not given stays as the current mesh has it
-            lam = current.get("lam") if lam is None else lam
-            depth = current.get("depth") if depth is None else depth
-            result = self.refiner.remesh(scan_id, self.scan_dir(record), lam, depth)
-            with self._lock:
-                version = self.get(scan_id).mesh_version + 1
-                params = {"lam": result.lam, "depth": result.depth, "file": result.file}
-                self.store.update(scan_id, mesh_version=version, mesh_params=params)
+            # from the current parameters read to the event sent: else two refines crossed,
+            # the earlier stored last (the current mesh went back) or read a stale λ or depth
+            with one_at_a_time:
+                current = self.get(scan_id).mesh_params  # a value not given stays as it is
+                lam = current.get("lam") if lam is None else lam
+                depth = current.get("depth") if depth is None else depth
+                result = self.refiner.remesh(scan_id, self.scan_dir(record), lam, depth)
+                with self._lock:
+                    version = self.get(scan_id).mesh_version + 1
+                    params = {"lam": result.lam, "depth": result.depth, "file": result.file}
+                    self.store.update(scan_id, mesh_version=version, mesh_params=params)
+                self.channel(scan_id).publish({
+                    "kind": "refined", "time": time.time(), "version": version, **params,
+                    "figures": result.figures})
         finally:
             with self._lock:
                 left = self._refining.pop(scan_id) - 1
                 if left:
                     self._refining[scan_id] = left
-        self.channel(scan_id).publish({
-            "kind": "refined", "time": time.time(), "version": version, **params,
-            "figures": result.figures})
+                else:
+                    self._refine_locks.pop(scan_id, None)
         return self.get(scan_id)
 
     def shutdown(self, timeout: float = 30.0) -> None:

@@ -108,6 +108,11 @@ class RunLifecycle:
                     log.warning("subscriber %r failed on %s: %s", callback, cls.kind, exc)
         return document
 
+    @property
+    def cancel_requested(self) -> bool:
+        """Whether a cancel was asked (the scan stops at its next checkpoint)."""
+        return self._cancel_requested.is_set()
+
     # -- requests ---------------------------------------------------------------------------------
     # No lock orders the requests and the checkpoint (a subscriber may ask for one while a
     # document is emitted under the documents' lock, and the daemon holds its own while it
@@ -115,21 +120,17 @@ class RunLifecycle:
     # cancelled or the pause withdrawn, and a request sets its flags in the order that makes
     # every interleaving end as asked (a request lost there left the scan paused for good).
     def pause(self) -> None:
-        """Ask the scan to pause at its next safe point (between frames or views)."""
-        if self._state == "paused":
-            return
-        if self._state != "running":
+        """Ask the scan to pause at its next safe point (between frames or views). Asked while
+        paused, it holds for after a resume on its way (else `resume(); pause()` ran on)."""
+        if self._state not in ("running", "paused"):
             raise InvalidTransition(f"cannot pause a scan that is {self._state}")
         self._pause_requested.set()
 
     def resume(self) -> None:
         """Resume a paused scan (after a lost device: try to reconnect it again)."""
-        if self._state == "running":  # the pause withdrawn, or met at once if being taken
-            self._pause_requested.clear()
-            self._resume_requested.set()
-            return
-        if self._state != "paused":
+        if self._state not in ("running", "paused"):
             raise InvalidTransition(f"cannot resume a scan that is {self._state}")
+        self._pause_requested.clear()  # running: the pause withdrawn, or met at once if taken
         self._resume_requested.set()
 
     def cancel(self, reason: str = "cancelled by the user") -> None:

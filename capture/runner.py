@@ -399,7 +399,11 @@ class ScanRunner(RunLifecycle):
             self._transition(event)
 
     def _close(self) -> None:
-        for closer in (self.engine and self.engine.close, self._recorder and self._recorder.close,
+        # a cancelled or failed scan's fit under way is not waited for: its mesh would follow
+        # the stop (not published), and the devices and the end would wait seconds for it
+        done = self._state == "done"
+        for closer in (self.engine and (lambda: self.engine.close(wait=done)),
+                       self._recorder and self._recorder.close,
                        self.station and self.station.close):
             if closer:
                 try:

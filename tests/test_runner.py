@@ -1,6 +1,7 @@
 """The scan runner on the simulated station: state table, documents, pause / resume / cancel,
 lost devices (the simulators' fault knobs), and output checks before the first move."""
 
+import dataclasses
 import json
 import threading
 import uuid
@@ -70,6 +71,35 @@ def test_no_document_follows_the_stop(tmp_path):
     count = len(runner.documents)
     runner._on_mesh(None, {"version": 7, "views": 2})  # as the engine's thread would call it
     assert len(runner.documents) == count and runner.documents[-1].kind == "stop"
+
+
+def test_a_cancel_does_not_wait_for_the_fit_under_way(tmp_path, monkeypatch):
+    """The fit running when a scan is cancelled is abandoned: the scan ends and closes its
+    devices without waiting for it (a vase's live scan waited 2-5 s), and its mesh is not
+    published."""
+    from capture.live.engine import IncrementalEngine
+
+    fitting, release = threading.Event(), threading.Event()
+
+    def held_fit(engine, update):
+        fitting.set()
+        release.wait(60)
+
+    monkeypatch.setattr(IncrementalEngine, "_run", held_fit)
+    runner = runner_for(tmp_path, plan(6, reconstruction=dataclasses.replace(
+        FAST_PARAMS, update_every=1)))
+    runner.start()
+    try:
+        assert fitting.wait(60)
+        runner.cancel()
+        ended = []
+        waiter = threading.Thread(target=lambda: ended.append(runner.wait()), daemon=True)
+        waiter.start()
+        waiter.join(30)
+        assert ended == ["interrupted"]  # while the fit is still held
+        assert kinds(runner)[-1] == "stop"
+    finally:
+        release.set()
 
 
 def test_invalid_transitions_raise_and_the_table_is_closed(tmp_path):
@@ -169,6 +199,31 @@ def test_a_cancel_or_resume_as_a_pause_is_taken_is_never_lost(flag):
     resume flag was cleared after it, and the scan stayed paused for good)."""
     assert paused_at_checkpoint(lambda run: run.cancel(), flag) == "cancelled"
     assert paused_at_checkpoint(lambda run: run.resume(), flag) == "returned"
+
+
+def test_a_pause_asked_just_after_a_resume_holds():
+    """resume() then pause() while the scan is still paused (the worker not yet running
+    again): it runs on, and pauses at its next checkpoint."""
+    run = RunLifecycle()
+    run._transition("start")
+    run.pause()
+    worker = threading.Thread(target=run._checkpoint, args=(0,), daemon=True)
+    worker.start()
+
+    def wait_for(state):
+        return run.wait_for_state(state, timeout=10) == state
+
+    assert wait_for("paused")
+    run.resume()
+    run.pause()
+    worker.join(10)
+    assert not worker.is_alive() and run.state == "running"
+    again = threading.Thread(target=run._checkpoint, args=(1,), daemon=True)
+    again.start()
+    assert wait_for("paused")
+    run.resume()
+    again.join(10)
+    assert run.state == "running"
 
 
 def test_unplugged_turntable_pauses_reconnects_and_resumes_at_that_view(tmp_path):

@@ -361,11 +361,11 @@ def _child(documents, commands, spec: RunSpec) -> None:
                       f"scan's budget of {budget:g} MiB ({reason})")
         send("end", reason)
         return
-    send("started")
     # the daemon's cancel while it has not yet read "started" stops the child with SIGTERM,
     # meant for devices that take their timeout to open: from here on that is a cancel, which
     # ends the recording as any cancel does
-    signal.signal(signal.SIGTERM, lambda *_: runner.cancel())
+    signal.signal(signal.SIGTERM, lambda *_: _cancel_once(runner))
+    send("started")
 
     def obey() -> None:
         while True:
@@ -387,7 +387,15 @@ def _child(documents, commands, spec: RunSpec) -> None:
 
     threading.Thread(target=obey, name="scan-commands", daemon=True).start()
     runner.wait()
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # ended: a stop signal ends the process
     if runner.executor is not None:
         runner.executor.shutdown(wait=False, cancel_futures=True)
     with contextlib.suppress(OSError, ValueError):  # no daemon left to tell
         send("end", runner.reason)
+
+
+def _cancel_once(runner) -> None:
+    """A stop signal to a running scan: cancelled by the user, unless it ended or another
+    cancel (the daemon's, or its going away) came first."""
+    if runner.state not in TERMINAL and not runner.cancel_requested:
+        runner.cancel()

@@ -110,6 +110,7 @@ class IncrementalEngine:
         self._lock = threading.Lock()
         self._queue: queue.Queue = queue.Queue()
         self._thread = None
+        self._abandoned = False
         if self._owns_executor:  # local spawn processes, torch imported while the scan starts
             self._executor = make_executor(None, self.workers)
         if background:
@@ -173,15 +174,19 @@ class IncrementalEngine:
                 return
             self._queue.task_done()
 
-    def close(self) -> None:
-        """Stop the worker after the update in progress; safe to repeat."""
+    def close(self, wait: bool = True) -> None:
+        """Stop the worker after the update in progress; safe to repeat. ``wait=False``
+        abandons that update (a cancelled or failed scan drops its mesh: not waited for, its
+        failure not reported)."""
         if self._thread is not None:
+            self._abandoned = not wait
             self.cancel()
             self._queue.put(_STOP)
-            self._thread.join()
+            if wait:
+                self._thread.join()
             self._thread = None
         if self._executor is not None and self._owns_executor:
-            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor.shutdown(wait=wait, cancel_futures=True)
         self._executor = None
 
     # -- work ----------------------------------------------------------------------------------
@@ -195,7 +200,10 @@ class IncrementalEngine:
                 if self.error is None and not stale:  # (a newer update is waiting: skip)
                     self._run(update)
             except Exception as exc:  # kept and re-raised by wait(): the scan decides
-                log.error("reconstruction failed: %s", exc)
+                if self._abandoned:  # its scan ended: nobody waits for it
+                    log.info("abandoned reconstruction ended: %s", exc)
+                else:
+                    log.error("reconstruction failed: %s", exc)
                 self.error = exc
             finally:
                 self._queue.task_done()

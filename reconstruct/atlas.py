@@ -51,6 +51,7 @@ from .chart_fit import (
     n_chart_workers,
     warm_up,
 )
+from .chart_logs import chart_steps
 from .chart_parts import ChartPart, parts_of
 from .chart_sides import ChartSides, UnchartedTracker, two_layer_charts, uncharted_points
 from .charts import ChartDecomposition
@@ -479,7 +480,8 @@ class AtlasReconstructor(BaseEstimator):
         """Chart ``index``'s mesh, meshed again if a re-mesh skipped it."""
         chart = self.charts_[index]
         if "mesh_" not in vars(chart):
-            chart.remesh()
+            with chart_steps():
+                chart.remesh()
         return chart.mesh_
 
     def _fill_stretched(self, parts, chart_samples_, chart_normals, reach):

@@ -25,6 +25,7 @@ import numpy as np
 from joblib import effective_n_jobs
 from joblib.externals.loky import ProcessPoolExecutor
 
+from .chart_logs import chart_steps
 from .errors import ReconstructionWarning
 from .faithfulness import (
     FOLD_LIMIT,
@@ -82,8 +83,9 @@ def embed_chart(points, lam: float, depth: int, random_state, n_neighbors: int) 
     embedding with K ``n_neighbors`` and its boundary samples at every saved depth."""
     from .pipeline import SurfaceReconstructor
 
-    return SurfaceReconstructor(**_chart_params(len(points), lam, depth, random_state,
-                                                n_neighbors)).embed(points, SAVED_DEPTHS)
+    with chart_steps():
+        return SurfaceReconstructor(**_chart_params(len(points), lam, depth, random_state,
+                                                    n_neighbors)).embed(points, SAVED_DEPTHS)
 
 
 def fit_chart(points, lam: float, depth: int, random_state, n_neighbors: int | None = None,
@@ -95,6 +97,13 @@ def fit_chart(points, lam: float, depth: int, random_state, n_neighbors: int | N
     narrowed to the chart's points, `sized_layers`) and K (``embedded``: `embed_chart`'s of
     these points, taken up). Returns (fitted `SurfaceReconstructor` or None, fault or None):
     the fault says why the chart is not faithful (`faithfulness`) or could not be fitted."""
+    with chart_steps():
+        return _fit_chart(points, lam, depth, random_state, n_neighbors, hidden_layers,
+                          embedded, search, sized)
+
+
+def _fit_chart(points, lam, depth, random_state, n_neighbors, hidden_layers, embedded, search,
+               sized) -> tuple:
     from .mlp import AdaptiveMLP
     from .pipeline import SurfaceReconstructor
 

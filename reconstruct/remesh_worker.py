@@ -34,6 +34,7 @@ from multiprocessing.util import Finalize
 import numpy as np
 import trimesh
 
+from .chart_logs import chart_steps
 from .chart_parts import ChartPart, parts_of, unchanged
 from .errors import DegenerateCloudError, FitError, ReconstructionWarning
 from .io import one_line
@@ -73,7 +74,8 @@ def remesh_chart(chart, index: int, part: ChartPart | None, params: dict, owners
         def test(outline, spacing, grid):
             return unchanged(part, outline, spacing, chart.surface_map_, mine, grid)
     try:
-        return chart.remesh_unless(test, **params)
+        with chart_steps():
+            return chart.remesh_unless(test, **params)
     except (FitError, DegenerateCloudError) as exc:
         return exc
 

@@ -115,3 +115,23 @@ def test_patches_wait_until_settled_and_big_enough_then_all_at_the_end():
     # at the end every patch with enough points is fitted
     ready, _ = patches.ready(present(s0=106, s1=200, s2=101, cap=30), final=True)
     assert ready == {"s0", "s1", "s2", "cap"}
+
+
+def test_a_patch_fits_warnings_are_said_with_its_name(monkeypatch, caplog, recwarn):
+    """A fit's warnings (in a worker they went to its stderr, with a file and a line of code)
+    come back with its result and are logged once, naming the patch."""
+    import warnings
+
+    from reconstruct.errors import ReconstructionWarning
+
+    def fit_patch(points, previous, params, polish, layers):
+        warnings.warn("boundary spline crosses itself", ReconstructionWarning, stacklevel=2)
+        warnings.warn("boundary spline crosses itself", ReconstructionWarning, stacklevel=2)
+        return Model((4,)), "fresh"
+
+    monkeypatch.setattr(patch_cache, "fit_patch", fit_patch)
+    cache = PatchCache(PARAMS)
+    assert cache.run([FitJob("sector 2", cells(12), None, False)]) == []
+    said = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert said == ["patch sector 2: boundary spline crosses itself"]
+    assert not [w for w in recwarn if issubclass(w.category, ReconstructionWarning)]

@@ -286,7 +286,7 @@ class IncrementalEngine:
             self.version += 1
             self.figures = {"version": self.version, "vertices": len(mesh.vertices),
                             "faces": len(mesh.faces), **figures}
-        log.info("mesh v%d after %d views: %d faces (%.1f s)", self.version, figures["views"],
+        log.debug("mesh v%d after %d views: %d faces (%.1f s)", self.version, figures["views"],
                  len(mesh.faces), figures["seconds"])
         if self.on_mesh is not None:
             self.on_mesh(self, dict(self.figures))

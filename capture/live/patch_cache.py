@@ -14,9 +14,11 @@ import dataclasses
 import hashlib
 import logging
 import time
+import warnings
 
 import numpy as np
 
+from reconstruct.errors import ReconstructionWarning
 from reconstruct.networks import n_parameters
 from reconstruct.pipeline import SurfaceReconstructor
 
@@ -57,6 +59,7 @@ class FitResult:
     how: str  # "fresh", "fixed", "warm" or "failed"
     seconds: float
     error: str | None = None
+    said: tuple[str, ...] = ()  # its `ReconstructionWarning`s, said here with the patch's name
 
 
 def _digest(points: np.ndarray) -> str:
@@ -109,6 +112,8 @@ class PatchCache:
         failed = []
         for job, result in zip(jobs, results, strict=True):
             self.counts[result.how] += 1
+            for message in result.said:
+                log.warning("patch %s: %s", job.name, message)
             if result.model is None:
                 log.warning("patch %s: fit failed (%s); it stays open for now", job.name,
                             result.error)
@@ -132,10 +137,15 @@ class PatchCache:
 def _fit_job(job: FitJob, params: ReconstructionParams, layers) -> FitResult:
     """Run one job (in a worker process, or inline)."""
     started = time.perf_counter()
-    try:
-        model, how = fit_patch(job.points, job.previous, params, polish=job.polish,
-                               layers=layers)
-    except Exception as exc:  # one bad patch must not lose the whole mesh
-        return FitResult(None, "failed", time.perf_counter() - started,
-                         f"{type(exc).__name__}: {exc}")
-    return FitResult(model, how, time.perf_counter() - started)
+    with warnings.catch_warnings(record=True) as caught:  # a worker's would go to its stderr
+        warnings.simplefilter("always", ReconstructionWarning)
+        try:
+            model, how = fit_patch(job.points, job.previous, params, polish=job.polish,
+                                   layers=layers)
+        except Exception as exc:  # one bad patch must not lose the whole mesh
+            model, how, error = None, "failed", f"{type(exc).__name__}: {exc}"
+        else:
+            error = None
+    said = tuple(dict.fromkeys(str(w.message) for w in caught
+                               if issubclass(w.category, ReconstructionWarning)))
+    return FitResult(model, how, time.perf_counter() - started, error, said)

@@ -343,7 +343,7 @@ class ScanRunner(RunLifecycle):
     def _on_mesh(self, engine: IncrementalEngine, figures: dict) -> None:
         with self._lock:  # a fit running at a cancel or failure may end after the stop document
             if self._stopped:
-                log.info("mesh v%d ended after the scan stopped: not published (scan.json and "
+                log.debug("mesh v%d ended after the scan stopped: not published (scan.json and "
                          "the scan's files are the stop's)", figures["version"])
                 return
             self._emit(MeshDocument, version=figures["version"], views=figures["views"],

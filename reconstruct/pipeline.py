@@ -786,7 +786,8 @@ class SurfaceReconstructor(BaseEstimator):
             atlas = AtlasReconstructor.from_state(meta, arrays)
             outer = meta.get("reconstructor")
             if outer is None:  # `AtlasReconstructor.save`'s: its parameters the ones both have
-                shared = cls().get_params(deep=False).keys() & atlas.get_params(deep=False)
+                shared = (cls().get_params(deep=False).keys() & atlas.get_params(deep=False)
+                          ) - set(_TRAINING_PARAMS)  # as `save` keeps them: not the atlas's
                 outer = {"params": {k: getattr(atlas, k) for k in shared},
                          "atlas_reason": "saved as an atlas (AtlasReconstructor.save)"}
             self = cls(**outer["params"])

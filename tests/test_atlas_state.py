@@ -55,6 +55,7 @@ def test_a_loaded_atlas_remeshes_to_the_same_mesh(saved):
     wrapped = SurfaceReconstructor.load(path.with_name("alone.npz"))  # which the whole reads
     assert (wrapped.lam, wrapped.depth) == (model.lam, model.depth) == (3.0, 3)  # re-meshed last
     assert "AtlasReconstructor.save" in wrapped.atlas_reason_
+    assert wrapped.max_points == SurfaceReconstructor().max_points  # a training parameter
     same_mesh(wrapped.remesh(), model.mesh_)
     model.remesh(lam=2.0)  # as the other tests expect it
 

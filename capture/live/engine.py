@@ -19,10 +19,13 @@ then re-meshes the atlas's charts through their ONNX maps and joins them again.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
+import os
 import queue
+import signal
 import threading
 import time
 from pathlib import Path
@@ -186,7 +189,10 @@ class IncrementalEngine:
                 self._thread.join()
             self._thread = None
         if self._executor is not None and self._owns_executor:
+            workers = list(getattr(self._executor, "_processes", None) or {})
             self._executor.shutdown(wait=wait, cancel_futures=True)
+            if not wait:  # its fits under way end with their processes (else the exit waits)
+                _stop_processes(self._executor, workers)
         self._executor = None
 
     # -- work ----------------------------------------------------------------------------------
@@ -201,7 +207,7 @@ class IncrementalEngine:
                     self._run(update)
             except Exception as exc:  # kept and re-raised by wait(): the scan decides
                 if self._abandoned:  # its scan ended: nobody waits for it
-                    log.info("abandoned reconstruction ended: %s", exc)
+                    log.debug("abandoned reconstruction ended: %s", exc)
                 else:
                     log.error("reconstruction failed: %s", exc)
                 self.error = exc
@@ -363,3 +369,15 @@ def remesh(source, lam: float | None = None, depth: int | None = None):
     path = Path(source) / f"mesh-lam{f['lam']:g}-depth{f['depth']}.ply"
     engine.mesh.export(path)
     return path
+
+
+def _stop_processes(executor, pids) -> None:
+    """End the worker processes ``pids`` of a `ProcessPoolExecutor` that was shut down
+    (``terminate_workers`` from Python 3.14; before, its processes by pid)."""
+    terminate = getattr(executor, "terminate_workers", None)
+    if terminate is not None:
+        terminate()
+        return
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGTERM)

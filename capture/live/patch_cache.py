@@ -59,7 +59,7 @@ class FitResult:
     how: str  # "fresh", "fixed", "warm" or "failed"
     seconds: float
     error: str | None = None
-    said: tuple[str, ...] = ()  # its `ReconstructionWarning`s, said here with the patch's name
+    said: tuple[str, ...] = ()  # a worker's `ReconstructionWarning`s: said here, named
 
 
 def _digest(points: np.ndarray) -> str:
@@ -78,6 +78,7 @@ class PatchCache:
         self.params = params
         self.fits: dict[str, PatchFit] = {}
         self.counts = {"fresh": 0, "fixed": 0, "warm": 0, "reused": 0, "failed": 0}
+        self._said: dict[str, set[str]] = {}  # the warnings said of each patch
         #: The architecture the first searched patches found (the largest), then reused.
         self.layers: tuple[int, ...] | None = None
 
@@ -107,13 +108,16 @@ class PatchCache:
         if executor is None:
             results = [_fit_job(job, p, self.layers) for job in jobs]
         else:
-            futures = [executor.submit(_fit_job, job, p, self.layers) for job in jobs]
+            futures = [executor.submit(_fit_job_in_worker, job, p, self.layers)
+                       for job in jobs]
             results = [f.result() for f in futures]
         failed = []
         for job, result in zip(jobs, results, strict=True):
             self.counts[result.how] += 1
-            for message in result.said:
-                log.warning("patch %s: %s", job.name, message)
+            for message in result.said:  # once a patch, not at each of its refits
+                if message not in self._said.setdefault(job.name, set()):
+                    self._said[job.name].add(message)
+                    log.warning("patch %s: %s", job.name, message)
             if result.model is None:
                 log.warning("patch %s: fit failed (%s); it stays open for now", job.name,
                             result.error)
@@ -135,17 +139,28 @@ class PatchCache:
 
 
 def _fit_job(job: FitJob, params: ReconstructionParams, layers) -> FitResult:
-    """Run one job (in a worker process, or inline)."""
+    """Run one job inline."""
     started = time.perf_counter()
-    with warnings.catch_warnings(record=True) as caught:  # a worker's would go to its stderr
+    try:
+        model, how = fit_patch(job.points, job.previous, params, polish=job.polish,
+                               layers=layers)
+    except Exception as exc:  # one bad patch must not lose the whole mesh
+        return FitResult(None, "failed", time.perf_counter() - started,
+                         f"{type(exc).__name__}: {exc}")
+    return FitResult(model, how, time.perf_counter() - started)
+
+
+def _fit_job_in_worker(job: FitJob, params: ReconstructionParams, layers) -> FitResult:
+    """`_fit_job` in a worker process, its `ReconstructionWarning`s returned with its result
+    (the worker printed them to its stderr with a file and a line of code); others are
+    said there as before."""
+    with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ReconstructionWarning)
-        try:
-            model, how = fit_patch(job.points, job.previous, params, polish=job.polish,
-                                   layers=layers)
-        except Exception as exc:  # one bad patch must not lose the whole mesh
-            model, how, error = None, "failed", f"{type(exc).__name__}: {exc}"
+        result = _fit_job(job, params, layers)
+    said = []
+    for w in caught:
+        if issubclass(w.category, ReconstructionWarning):
+            said.append(str(w.message))
         else:
-            error = None
-    said = tuple(dict.fromkeys(str(w.message) for w in caught
-                               if issubclass(w.category, ReconstructionWarning)))
-    return FitResult(model, how, time.perf_counter() - started, error, said)
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return dataclasses.replace(result, said=tuple(dict.fromkeys(said)))

@@ -152,8 +152,9 @@ def _merged_once(points: np.ndarray) -> tuple[np.ndarray, str]:
                     & (partner[partner] == np.arange(n)))
             pairs.append(np.column_stack([np.flatnonzero(pair), partner[pair]]))
             what = (f"points into their twins ({share:.0%} of the points have a neighbour "
-                    f"{1 / TWIN:g} times nearer than their next: a cloud merged with a moved "
-                    f"copy of itself?)")
+                    f"{1 / TWIN:g} times nearer than their next: a surface sampled twice, as by "
+                    f"a cloud merged with a moved copy of itself, or a flat face averaged into "
+                    f"two voxel layers)")
     pairs = np.concatenate(pairs)
     if len(pairs) == 0:
         return np.arange(n), ""

@@ -54,7 +54,7 @@ def test_pause_resume_and_cancel_reach_the_child(tmp_path):
         return lambda: (f"the child to {awaited}: it is {runner.state}, its last documents "
                         f"{[d['kind'] for d in runner.documents[-5:]]}")
     wait_until(lambda: runner.state == "paused", what=seen("pause"))
-    runner.pause()  # already paused: nothing to do
+    runner.pause()  # held, and withdrawn by the resume below
     runner.resume()
     wait_until(lambda: runner.state == "running", what=seen("resume"))
     runner.cancel()

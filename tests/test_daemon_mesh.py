@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import threading
 
 import numpy as np
 import pytest
@@ -118,8 +119,6 @@ def test_reprocess_rebuilds_the_mesh_from_the_recording(finished):
 
 
 def test_no_reprocess_resume_or_delete_while_a_refine_runs(finished):
-    import threading
-
     client, scan, _ = finished
     jobs = client.app.app.state.jobs
     real, started, release = jobs.refiner.remesh, threading.Event(), threading.Event()
@@ -151,8 +150,6 @@ def test_no_reprocess_resume_or_delete_while_a_refine_runs(finished):
 def test_two_refines_of_a_scan_store_in_the_order_they_ran(finished):
     """The second refine starts once the first stored its mesh: the current mesh is the last
     one made, and a refine given only λ takes the depth the first one set."""
-    import threading
-
     client, scan, _ = finished
     jobs = client.app.app.state.jobs
     real, calls, release = jobs.refiner.remesh, [], threading.Event()

@@ -2,11 +2,14 @@
 re-meshing without retraining, and its saved state."""
 
 import dataclasses
+import os
+import time
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import trimesh
+from daemon_helpers import wait_until
 from surface_checks import hits_per_ray, side_rays
 
 from capture.live.atlas_fit import atlas_reason
@@ -133,11 +136,6 @@ def test_remesh_without_training_survives_a_reload(stream, tmp_path, fast_params
 def test_an_abandoned_engine_ends_its_worker_processes(fast_params):
     """close(wait=False) (a cancelled scan) ends the fits under way with their processes: the
     program's exit waited for them (Ctrl-C on the main job: 3.0-4.6 s, now about 1 s)."""
-    import os
-    import time
-
-    from daemon_helpers import wait_until
-
     engine = IncrementalEngine(fast_params, workers=2)
     fits = [engine._executor.submit(time.sleep, 60) for _ in range(2)]  # two fits under way
     wait_until(lambda: all(f.running() for f in fits), 60, what="the fits to start")

@@ -75,8 +75,7 @@ def test_no_document_follows_the_stop(tmp_path):
 
 def test_a_cancel_does_not_wait_for_the_fit_under_way(tmp_path, monkeypatch):
     """The fit running when a scan is cancelled is abandoned: the scan ends and closes its
-    devices without waiting for it (a vase's live scan waited 2-5 s), and its mesh is not
-    published."""
+    devices without waiting for it (a vase's live scan waited 2-5 s)."""
     from capture.live.engine import IncrementalEngine
 
     fitting, release = threading.Event(), threading.Event()

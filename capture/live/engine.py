@@ -192,7 +192,7 @@ class IncrementalEngine:
             workers = list(getattr(self._executor, "_processes", None) or {})
             self._executor.shutdown(wait=wait, cancel_futures=True)
             if not wait:  # its fits under way end with their processes (else the exit waits)
-                _stop_processes(self._executor, workers)
+                _stop_processes(workers)
         self._executor = None
 
     # -- work ----------------------------------------------------------------------------------
@@ -371,13 +371,9 @@ def remesh(source, lam: float | None = None, depth: int | None = None):
     return path
 
 
-def _stop_processes(executor, pids) -> None:
-    """End the worker processes ``pids`` of a `ProcessPoolExecutor` that was shut down
-    (``terminate_workers`` from Python 3.14; before, its processes by pid)."""
-    terminate = getattr(executor, "terminate_workers", None)
-    if terminate is not None:
-        terminate()
-        return
+def _stop_processes(pids) -> None:
+    """End the worker processes ``pids`` of a `ProcessPoolExecutor` that was shut down (by
+    pid: its own ``terminate_workers``, from Python 3.14, finds none once it is shut down)."""
     for pid in pids:
         with contextlib.suppress(OSError):
             os.kill(pid, signal.SIGTERM)

@@ -139,7 +139,7 @@ class PatchCache:
 
 
 def _fit_job(job: FitJob, params: ReconstructionParams, layers) -> FitResult:
-    """Run one job inline."""
+    """Run one job (inline, or inside `_fit_job_in_worker`)."""
     started = time.perf_counter()
     try:
         model, how = fit_patch(job.points, job.previous, params, polish=job.polish,

@@ -108,7 +108,6 @@ class ScanRunner(RunLifecycle):
         self.image_shape: tuple[int, int] | None = None
         self.error: BaseException | None = None
         self._said_empty = False  # a view without points was reported
-        self._stopped = False  # the stop document was emitted: no document after it
         self._limits: collections.Counter = collections.Counter()  # views reaching each limit
 
     @classmethod
@@ -342,7 +341,7 @@ class ScanRunner(RunLifecycle):
 
     def _on_mesh(self, engine: IncrementalEngine, figures: dict) -> None:
         with self._lock:  # a fit running at a cancel or failure may end after the stop document
-            if self._stopped:
+            if self.documents and self.documents[-1].kind == "stop":
                 log.debug("mesh v%d ended after the scan stopped: not published (scan.json and "
                          "the scan's files are the stop's)", figures["version"])
                 return
@@ -388,11 +387,8 @@ class ScanRunner(RunLifecycle):
                 files = self.outputs.final_files()
             except Exception as exc:
                 log.error("could not list the scan's files: %s", exc)
-            with self._lock:
-                self._stopped = True
-                self._emit(StopDocument, state=state, reason=reason,
-                           views_done=self._views_done, views_total=self.plan.n_views,
-                           files=files)
+            self._emit(StopDocument, state=state, reason=reason, views_done=self._views_done,
+                       views_total=self.plan.n_views, files=files)
         except Exception as exc:
             log.error("ending the scan: %s", exc)
         finally:

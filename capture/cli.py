@@ -21,20 +21,23 @@ def build_parser() -> argparse.ArgumentParser:
         prog="scanstation",
         description="Scanner-capture workstation: capture depth + turntable scans, build meshes.",
     )
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    parser.add_argument("-q", "--quiet", action="store_true",
+                        help="no progress output (warnings and errors still)")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug output")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMANDS:
         importlib.import_module(f"capture.commands.{name}").add_parser(subparsers)
     for sub in subparsers.choices.values():  # also after the command: `scanstation scan -q`
         sub.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
-                         help="no progress output")
+                         help="no progress output (warnings and errors still)")
         sub.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
                          help="debug output, tracebacks")
     return parser
 
 
 def _setup_output(quiet: bool, verbose: bool) -> None:
+    """Progress at INFO (none when ``quiet``, DEBUG when ``verbose``), warnings always, one line
+    each."""
     level = logging.WARNING if quiet else logging.DEBUG if verbose else logging.INFO
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(message)s"))
@@ -45,8 +48,7 @@ def _setup_output(quiet: bool, verbose: bool) -> None:
         logging.getLogger(name).setLevel(level)
 
     def one_line_warning(message, category, filename, lineno, file=None, line=None):
-        if not quiet:
-            print(f"warning: {message}", file=sys.stderr)
+        print(f"warning: {message}", file=sys.stderr)  # even quiet: a result may differ
 
     warnings.showwarning = one_line_warning
 

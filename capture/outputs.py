@@ -15,7 +15,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from reconstruct.io import write_bytes_atomic
+from reconstruct.io import cloud_data, mesh_data, write_bytes_atomic
 
 from .plan import ScanPlan
 
@@ -62,16 +62,13 @@ class ScanOutputs:
         return needed
 
     def write_mesh(self, mesh, name: str = "mesh.ply") -> Path:
-        path = write_bytes_atomic(self.directory / name, mesh.export(file_type="ply"))
+        path = write_bytes_atomic(self.directory / name, mesh_data(mesh, "ply"))
         self.files["mesh"] = str(path)
         return path
 
     def write_cloud(self, points, name: str = "cloud.ply") -> Path:
         """The merged, calibrated cloud (m, 3) mm the mesh was fitted to, for other tools."""
-        import trimesh
-
-        data = trimesh.PointCloud(points).export(file_type="ply")
-        path = write_bytes_atomic(self.directory / name, data)
+        path = write_bytes_atomic(self.directory / name, cloud_data(points))
         self.files["cloud"] = str(path)
         return path
 

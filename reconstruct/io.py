@@ -1,5 +1,11 @@
-"""Reading point clouds (PLY, XYZ/CSV text, NPY), writing meshes (PLY, OBJ, STL, GLB), and the
-fitted-state archive (`write_state` / `read_state`: a JSON header and named arrays in one .npz)."""
+"""Reading point clouds (PLY, XYZ/CSV text, NPY), writing meshes (PLY, OBJ, STL, GLB) and clouds
+(PLY), and the fitted-state archive (`write_state` / `read_state`: a JSON header and named
+arrays in one .npz).
+
+A PLY is written in single precision (float32, as trimesh writes it) when that holds the
+vertices, else in double: a cloud in map coordinates (a 150 mm object 5,000 km from the origin)
+rounds to half a metre in float32, and a mesh of it written so has no face left with an area.
+"""
 
 from __future__ import annotations
 
@@ -7,16 +13,22 @@ import io
 import json
 import os
 import tempfile
+import warnings
 import zipfile
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
-from .errors import InvalidInputError
+from .errors import InvalidInputError, ReconstructionWarning
 
 POINT_FORMATS = (".ply", ".xyz", ".txt", ".csv", ".pts", ".npy")
 MESH_FORMATS = (".ply", ".obj", ".stl", ".glb")
+#: Mesh formats whose vertices are single precision whatever the mesh needs.
+SINGLE_PRECISION_FORMATS = ("stl", "glb")
+#: Single precision holds vertices when rounding them to it moves none by more than this share
+#: of their box's diagonal (a 150 mm object: 0.15 µm) and collapses no edge of a face.
+SINGLE_PRECISION_TOLERANCE = 1e-6
 
 
 def read_points(path: str | os.PathLike) -> np.ndarray:
@@ -129,13 +141,75 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
     return path
 
 
+def rounding_to_single(vertices, faces=None) -> float | None:
+    """How far (input units) rounding ``vertices`` (n, 3) to float32 moves one at most, when
+    that is too far (`SINGLE_PRECISION_TOLERANCE` of their diagonal, or an edge of ``faces``
+    (f, 3) collapsed); None when single precision holds them."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    if len(vertices) == 0:
+        return None
+    single = vertices.astype(np.float32)
+    moved = float(np.abs(single - vertices).max())
+    diagonal = float(np.linalg.norm(np.ptp(single, axis=0).astype(np.float64)))
+    if moved > SINGLE_PRECISION_TOLERANCE * diagonal:
+        return moved
+    if faces is not None and len(faces):
+        faces = np.asarray(faces)
+        start, end = faces.ravel(), np.roll(faces, -1, axis=1).ravel()
+        for axis in range(3):  # the edges whose ends round to one point, an axis at a time
+            column = np.ascontiguousarray(single[:, axis])
+            same = column[start] == column[end]
+            start, end = start[same], end[same]
+        if np.any(vertices[start] != vertices[end]):
+            return moved
+    return None
+
+
+def _double_ply(vertices, faces=None) -> bytes:
+    """Binary little-endian PLY of ``vertices`` (n, 3) in double precision and triangle
+    ``faces`` (f, 3), as trimesh writes them in single precision otherwise."""
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(vertices)}",
+              "property double x", "property double y", "property double z"]
+    body = [np.ascontiguousarray(vertices, dtype="<f8").tobytes()]
+    if faces is not None:
+        header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+        packed = np.zeros(len(faces), dtype=[("count", "u1"), ("index", "<i4", (3,))])
+        packed["count"], packed["index"] = 3, faces
+        body.append(packed.tobytes())
+    return "\n".join([*header, "end_header\n"]).encode("ascii") + b"".join(body)
+
+
+def mesh_data(mesh: trimesh.Trimesh, file_type: str, name: str = "the mesh") -> bytes:
+    """``mesh`` as a ``file_type`` (ply, obj, stl, glb) file's bytes: a PLY in double
+    precision when single would not hold its vertices (`rounding_to_single`); STL and GLB,
+    single precision by their format, then warn (`ReconstructionWarning`, naming ``name``)."""
+    file_type = file_type.lower().lstrip(".")
+    rounding = rounding_to_single(mesh.vertices, mesh.faces)
+    if rounding is not None and file_type == "ply":
+        return _double_ply(mesh.vertices, mesh.faces)
+    if rounding is not None and file_type in SINGLE_PRECISION_FORMATS:
+        warnings.warn(f"{name}: {file_type.upper()} stores single precision, which moves "
+                      f"vertices by up to {rounding:.3g} (coordinates up to "
+                      f"{float(np.abs(mesh.vertices).max()):.3g}); .ply or .obj keeps them",
+                      ReconstructionWarning, stacklevel=2)
+    data = mesh.export(file_type=file_type)
+    return data.encode("utf-8") if isinstance(data, str) else data
+
+
+def cloud_data(points) -> bytes:
+    """A PLY file's bytes of the points (m, 3): single precision when it holds them, as
+    `mesh_data`."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if rounding_to_single(points) is not None:
+        return _double_ply(points)
+    return trimesh.PointCloud(points).export(file_type="ply")
+
+
 def write_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> Path:
-    """Write ``mesh`` in the format given by the extension, atomically (temp file + rename)."""
+    """Write ``mesh`` in the format given by the extension (`mesh_data`), atomically (temp
+    file + rename)."""
     path = check_mesh_path(path)
-    data = mesh.export(file_type=path.suffix.lower()[1:])
-    if isinstance(data, str):
-        data = data.encode("utf-8")
-    return write_bytes_atomic(path, data)
+    return write_bytes_atomic(path, mesh_data(mesh, path.suffix, name=str(path)))
 
 
 def write_state(path: str | os.PathLike, meta: dict, arrays: dict[str, np.ndarray]) -> Path:

@@ -36,6 +36,17 @@ def test_reconstruct_then_remesh(tmp_path, capsys):
     assert areas["0"] < areas["border"]
 
 
+def test_quiet_keeps_the_warnings(tmp_path, capsys):
+    cloud = _plane(tmp_path / "plane.xyz")
+    with open(cloud, "a") as handle:
+        handle.write("nan 0 0\n")
+    out = tmp_path / "mesh.ply"
+    args = ["--quiet", "reconstruct", str(cloud), "-o", str(out), "--max-layers", "1"]
+    assert main([*args, "--max-neurons", "6"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert err == ["warning: dropped 1 of 501 points with NaN or infinite coordinates"]
+
+
 def test_extend_option_rejects_a_bad_value(tmp_path, capsys):
     cloud = _plane(tmp_path / "plane.xyz")
     with pytest.raises(SystemExit) as exit_:

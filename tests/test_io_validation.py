@@ -5,7 +5,13 @@ import pytest
 import trimesh
 
 from reconstruct.errors import DegenerateCloudError, InvalidInputError, ReconstructionWarning
-from reconstruct.io import check_mesh_path, read_points, write_mesh
+from reconstruct.io import (
+    check_mesh_path,
+    cloud_data,
+    read_points,
+    rounding_to_single,
+    write_mesh,
+)
 from reconstruct.validation import MIN_POINTS, check_points, merge_duplicates
 
 RNG = np.random.default_rng(0)
@@ -62,6 +68,67 @@ def test_write_mesh_by_extension(tmp_path, suffix):
     loaded = trimesh.load(path, force="mesh")
     assert len(loaded.faces) == len(mesh.faces)
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "no temp file left"
+
+
+def _far_sphere() -> trimesh.Trimesh:
+    """A 150 mm sphere, in metres, 5,000 km from the origin (map coordinates): float32 rounds
+    its vertices to half a metre."""
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.075)
+    mesh.apply_translation([5.0e6, 5.0e6, 120.0])
+    return mesh
+
+
+def _header(path) -> bytes:
+    return path.read_bytes().split(b"end_header")[0]
+
+
+def test_a_mesh_far_from_the_origin_is_written_in_double_precision(tmp_path):
+    mesh = _far_sphere()
+    path = write_mesh(mesh, tmp_path / "far.ply")
+    assert b"property double x" in _header(path)
+    exact = trimesh.load(path, process=False)
+    assert np.array_equal(exact.vertices, mesh.vertices)
+    assert np.array_equal(exact.faces, mesh.faces)
+    merged = trimesh.load(path)  # a reader that merges vertices finds the same closed mesh
+    assert merged.is_watertight and merged.euler_number == 2
+    assert merged.area == pytest.approx(mesh.area)
+
+
+def test_a_mesh_near_the_origin_stays_single_precision(tmp_path):
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=75.0)
+    mesh.apply_translation([300.0, -200.0, 120.0])  # a scan station's millimetres
+    path = write_mesh(mesh, tmp_path / "near.ply")
+    assert b"property float x" in _header(path)
+    assert np.allclose(trimesh.load(path, process=False).vertices, mesh.vertices, atol=1e-4)
+
+
+def test_an_edge_that_single_precision_collapses_needs_double():
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=75.0)
+    vertices, faces = mesh.vertices.copy(), mesh.faces
+    vertices[faces[0, 0]] = vertices[faces[0, 0]].astype(np.float32)  # exact in float32
+    vertices[faces[0, 1]] = vertices[faces[0, 0]] * (1 + 1e-9)  # well within its ulp
+    assert rounding_to_single(mesh.vertices, faces) is None
+    assert rounding_to_single(vertices, faces) is not None
+
+
+@pytest.mark.parametrize("suffix", [".stl", ".glb"])
+def test_single_precision_formats_warn_far_from_the_origin(tmp_path, suffix):
+    with pytest.warns(ReconstructionWarning, match=f"{suffix[1:].upper()} stores single "
+                                                    "precision.*ply or .obj keeps them"):
+        write_mesh(_far_sphere(), tmp_path / f"far{suffix}")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        write_mesh(trimesh.creation.icosphere(subdivisions=1), tmp_path / f"near{suffix}")
+
+
+def test_a_cloud_far_from_the_origin_keeps_its_points(tmp_path):
+    points = _far_sphere().vertices
+    path = tmp_path / "cloud.ply"
+    path.write_bytes(cloud_data(points))
+    assert np.array_equal(read_points(path), points)
+    near = tmp_path / "near.ply"
+    near.write_bytes(cloud_data(points - points.mean(axis=0)))
+    assert b"property float x" in _header(near)
 
 
 def test_mesh_path_checked_before_work(tmp_path):

@@ -7,7 +7,6 @@ holds) can name a file elsewhere.
 
 from __future__ import annotations
 
-import io
 from pathlib import Path
 
 import trimesh
@@ -48,10 +47,9 @@ def mesh_bytes(path: Path, fmt: str) -> bytes:
     """The mesh at ``path`` converted to ``fmt`` (ply, obj, stl, glb)."""
     if fmt not in MEDIA_TYPES:
         raise ValueError(f"unknown mesh format {fmt!r} (known: {', '.join(MEDIA_TYPES)})")
-    mesh = trimesh.load(path, force="mesh", process=False)
-    buffer = io.BytesIO()
-    mesh.export(buffer, file_type=fmt)
-    return buffer.getvalue()
+    from reconstruct.io import mesh_data
+
+    return mesh_data(trimesh.load(path, force="mesh", process=False), fmt, name=path.name)
 
 
 def recording_segments(folder: Path) -> list[Path]:

@@ -45,6 +45,7 @@ class MeshRefiner:
         `RefineFailed` when the new parameters give no mesh."""
         from capture.live.engine import EngineError, IncrementalEngine
         from reconstruct.errors import ReconstructionError
+        from reconstruct.io import mesh_data
 
         with self._lock:
             scan_lock = self._locks.setdefault(scan_id, threading.Lock())
@@ -72,7 +73,7 @@ class MeshRefiner:
             figures = dict(engine.figures)
             name = f"mesh-lam{figures['lam']:g}-depth{figures['depth']}.ply"
             partial = folder / f".{name}.part"
-            engine.mesh.export(partial, file_type="ply")
+            partial.write_bytes(mesh_data(engine.mesh, "ply"))
             os.replace(partial, folder / name)  # a download never sees half a file
         return RefineResult(float(figures["lam"]), int(figures["depth"]), name, figures)
 

@@ -13,6 +13,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+from reconstruct.io import mesh_data
+
 from .events import EventChannel
 from .store import JobStore
 
@@ -33,7 +35,7 @@ def write_live_mesh(mesh, folder: Path) -> bool:
         return False
     partial = Path(folder) / f".{LIVE_MESH}.part"
     try:
-        partial.write_bytes(mesh.export(file_type="ply"))
+        partial.write_bytes(mesh_data(mesh, "ply"))
         os.replace(partial, Path(folder) / LIVE_MESH)
     except OSError as exc:  # the live view is a bonus; the scan goes on
         log.warning("could not write the live mesh in %s: %s", folder, exc)

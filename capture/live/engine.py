@@ -34,6 +34,7 @@ import numpy as np
 import trimesh
 
 from reconstruct.atlas import AtlasReconstructor
+from reconstruct.io import mesh_data, write_bytes_atomic
 from reconstruct.pipeline import SurfaceReconstructor
 
 from ..executors import make_executor
@@ -367,7 +368,7 @@ def remesh(source, lam: float | None = None, depth: int | None = None):
     engine.remesh(lam, depth)
     f = engine.figures
     path = Path(source) / f"mesh-lam{f['lam']:g}-depth{f['depth']}.ply"
-    engine.mesh.export(path)
+    write_bytes_atomic(path, mesh_data(engine.mesh, "ply"))
     return path
 
 

@@ -75,6 +75,32 @@ def test_voxel_cloud_averages_and_counts_views():
         VoxelCloud(0)
 
 
+def _flat_face(z: float, n: int = 30000, seed: int = 0) -> np.ndarray:
+    """(n, 3) points of a 50 mm square face at height ``z`` mm, σ 0.1 mm."""
+    rng = np.random.default_rng(seed)
+    return np.column_stack([rng.uniform(0, 50, (n, 2)), z + rng.normal(0, 0.1, n)])
+
+
+def test_a_face_on_a_voxel_boundary_is_one_layer_of_points():
+    on_boundary = VoxelCloud(2.0)  # the vase's top: z = 120 mm = 60 voxels
+    on_boundary.add(_flat_face(120.0))
+    assert len(on_boundary) > 1200  # two layers of voxels, 25 x 25 each
+    points = on_boundary.points()
+    assert len(points) < 1.05 * 625  # about one point per column of voxels (24 points a voxel:
+    assert np.median(np.abs(points[:, 2] - 120.0)) < 0.02  # a few means lie 0.25 voxel apart)
+    inside = VoxelCloud(2.0)  # a face in mid-voxel: one layer, untouched
+    inside.add(_flat_face(121.0))
+    assert len(inside) == len(inside.points()) == 625
+
+
+def test_two_sheets_a_voxel_apart_are_not_joined():
+    cloud = VoxelCloud(2.0)
+    cloud.add(np.vstack([_flat_face(119.4), _flat_face(120.6, seed=1)]))
+    points = cloud.points()
+    assert len(points) == len(cloud) == 1250
+    assert sorted(np.unique(np.round(points[:, 2]))) == [119.0, 121.0]
+
+
 def test_meshes_grow_with_the_views_and_the_last_one_is_final(stream, fast_params):
     truth, stream_views = stream
     engine, figures = run_engine(stream_views, fast_params, total_views=len(stream_views),

@@ -164,6 +164,9 @@ class SurfaceReconstructor(BaseEstimator):
         From ``SPECULATE_FROM`` points it decomposes the cloud for the atlas in a worker
         process while the one chart is searched (stopped if one chart holds the cloud);
         "never" keeps one chart (and warns); "always" fits an atlas.
+    closed, voxel : an atlas's (`AtlasReconstructor`): None decides whether the cloud is
+        closed, True joins it as the boundary of a volume, False as an open surface; the grid
+        spacing of its join in median point spacings.
     mlp : an unfitted `AdaptiveMLP` (cloned by `fit`) used instead of the one ``max_layers``,
         ``max_neurons``, ``activation``, ``retrain`` and ``random_state`` describe: other
         training budgets, or ``hidden_layers`` to skip the search.
@@ -220,6 +223,8 @@ class SurfaceReconstructor(BaseEstimator):
         atlas: str = "auto",
         up: tuple[float, float, float] | None = (0.0, 0.0, 1.0),
         max_points: int | None = MAX_POINTS,
+        closed: bool | None = None,
+        voxel: float = 0.5,
     ):
         self.lam = lam
         self.depth = depth
@@ -241,6 +246,8 @@ class SurfaceReconstructor(BaseEstimator):
         self.atlas = atlas
         self.up = up
         self.max_points = max_points
+        self.closed = closed
+        self.voxel = voxel
 
     def fit(self, points, warm_start: SurfaceReconstructor | None = None,
             embedded: Embedded | None = None) -> SurfaceReconstructor:
@@ -279,6 +286,10 @@ class SurfaceReconstructor(BaseEstimator):
         without a word)."""
         if self.atlas not in ATLAS_MODES:
             raise InvalidInputError(f"atlas must be one of {ATLAS_MODES}, got {self.atlas!r}")
+        if self.closed not in (None, True, False):
+            raise InvalidInputError(f"closed must be None, True or False, got {self.closed!r}")
+        if not (isinstance(self.voxel, (int, float, np.number)) and 0 < self.voxel < np.inf):
+            raise InvalidInputError(f"voxel must be a number > 0, got {self.voxel!r}")
         self._new_mlp()._check_params()  # its search limits, as the search would check them
         seed = self.random_state
         if isinstance(seed, (int, np.integer)) and seed < 0:
@@ -474,11 +485,12 @@ class SurfaceReconstructor(BaseEstimator):
         return None
 
     def _new_atlas(self):
-        """An unfitted `AtlasReconstructor` with this reconstruction's λ, depth, search limits
-        and seed."""
+        """An unfitted `AtlasReconstructor` with this reconstruction's λ, depth, join, search
+        limits and seed."""
         from .atlas import AtlasReconstructor
 
         return AtlasReconstructor(lam=self.lam, depth=self.depth, up=self.up,
+                                  closed=self.closed, voxel=self.voxel,
                                   max_layers=self.max_layers, max_neurons=self.max_neurons,
                                   random_state=self.random_state)
 

@@ -165,3 +165,29 @@ def test_reconstruct_saves_an_atlas_that_remesh_reads(tmp_path):
     assert main(["--quiet", "remesh", str(state), "-o", str(again), "--depth", "3"]) == 0
     assert trimesh.load(out, force="mesh").is_watertight
     assert trimesh.load(again, force="mesh").is_watertight
+
+
+def test_reconstruct_takes_the_atlas_join_options(tmp_path):
+    cloud, out, state = tmp_path / "sphere.xyz", tmp_path / "mesh.ply", tmp_path / "state.npz"
+    np.savetxt(cloud, sphere_cloud())
+    args = ["--quiet", "reconstruct", str(cloud), "-o", str(out), "--save", str(state)]
+    assert main([*args, "--closed", "no", "--voxel", "0.6"]) == 0
+    loaded = SurfaceReconstructor.load(state)
+    assert (loaded.closed, loaded.voxel) == (False, 0.6)
+    assert (loaded.atlas_.closed, loaded.atlas_.voxel, loaded.atlas_.closed_) == (False, 0.6, False)
+
+
+@pytest.mark.parametrize(("option", "value"), [("--voxel", "0"), ("--voxel", "nan"),
+                                               ("--closed", "maybe")])
+def test_bad_atlas_join_options_are_refused(tmp_path, capsys, option, value):
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(tmp_path / "c.xyz"), "-o", str(tmp_path / "m.ply"), option,
+              value])
+    assert option in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("params", "message"), [({"closed": "yes"}, "closed must be"),
+                                                 ({"voxel": 0.0}, "voxel must be")])
+def test_bad_atlas_join_params_are_refused(params, message):
+    with pytest.raises(InvalidInputError, match=message):
+        SurfaceReconstructor(**params).fit(sphere_cloud())

@@ -1,8 +1,13 @@
 """A closed join whose topology depends on where its grid falls: joined again on shifted
 lattices, the most frequent topology is kept and the atlas says so (reconstruct.join_alignment)."""
 
+import pytest
 import trimesh
+from surface_checks import sphere_cloud
 
+import reconstruct.atlas as atlas_module
+from reconstruct.atlas import AtlasReconstructor
+from reconstruct.errors import ReconstructionWarning
 from reconstruct.join_alignment import SHIFTS, steady_join
 
 SPHERE = trimesh.creation.icosphere(2)  # Euler characteristic 2
@@ -38,4 +43,13 @@ def test_three_different_topologies_keep_the_unshifted_join():
     join, asked = joins(TORUS, two)
     mesh, grid, facts, note = steady_join(SPHERE, "grid 0", join)
     assert mesh is SPHERE and grid == "grid 0" and facts[2] == 2
-    assert asked == list(SHIFTS[1:]) and "2 / 0 / 4" in note and "kept 2;" in note
+    assert asked == list(SHIFTS[1:]) and "2 / 0 / 4" in note and note.endswith("kept 2")
+
+
+def test_an_unsteady_atlas_join_advises_a_larger_voxel_than_its_own(monkeypatch):
+    def unsteady(mesh, grid, join):
+        return mesh, grid, (True, True, 2), "the closed mesh's topology depends on (...)"
+    monkeypatch.setattr(atlas_module, "steady_join", unsteady)
+    with pytest.warns(ReconstructionWarning, match=r"topology depends .* a larger voxel may "
+                      r"steady it \(voxel=0\.84, --voxel 0\.84; now 0\.6 median spacings\)"):
+        AtlasReconstructor(voxel=0.6, n_jobs=1).fit(sphere_cloud())

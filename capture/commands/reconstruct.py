@@ -93,8 +93,27 @@ def add_parser(subparsers) -> None:
         help="fit an atlas of charts when one chart cannot hold the cloud (auto, default), "
         "never (one chart, with a warning), or always (a closed object whose walls are "
         "thinner than the noise: one chart meshes them as one open sheet)")
+    parser.add_argument(
+        "--closed", choices=("auto", "yes", "no"), default="auto",
+        help="join an atlas as the boundary of a volume when its charts say the cloud is "
+        "closed (auto, default), always (yes), or as an open surface (no)")
+    parser.add_argument(
+        "--voxel", type=_voxel, default=0.5, metavar="SPACINGS",
+        help="grid spacing of an atlas's join, in median point spacings (default 0.5)")
     parser.add_argument("--save", metavar="STATE", help="also save the state for `remesh`")
     parser.set_defaults(run=run)
+
+
+def _voxel(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 < value < float("inf"):  # also NaN
+        import argparse
+
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return value
 
 
 def _max_points(text: str):
@@ -120,8 +139,10 @@ def run(args) -> int:
     check_mesh_path(args.output)  # fail before the long work, not after
     points = read_points(args.input)
     log.info("read %d points from %s", len(points), args.input)
-    model = reconstructor_from_args(args).set_params(max_points=args.max_points,
-                                                     atlas=args.atlas).fit(points)
+    closed = {"auto": None, "yes": True, "no": False}[args.closed]
+    model = reconstructor_from_args(args).set_params(
+        max_points=args.max_points, atlas=args.atlas, closed=closed, voxel=args.voxel,
+    ).fit(points)
     write_mesh(model.mesh_, args.output)
     log.info(
         "wrote %s (%d vertices, %d faces)",

@@ -62,7 +62,7 @@ from .errors import (
     NotFittedError,
     ReconstructionWarning,
 )
-from .faithfulness import LAYERED_KURTOSIS, residual_kurtosis
+from .faithfulness import LAYERED_KURTOSIS, residual_kurtosis, volume_warning
 from .io import one_line, read_state, write_state
 from .join import (
     ExteriorProbe,
@@ -255,6 +255,9 @@ class AtlasReconstructor(BaseEstimator):
                 points = check_points(points)
                 if self.up is not None:
                     check_up(self.up)
+                volume = volume_warning(points)
+                if volume:
+                    warnings.warn(volume, ReconstructionWarning, stacklevel=2)
                 if workers is None:
                     workers = chart_workers(self.n_jobs)
                 points, fitted = self._fit_all(points, workers, started,

@@ -46,6 +46,7 @@ from .faithfulness import (
     neighbour_preservation,
     residual_kurtosis,
     unexplained_fraction,
+    volume_warning,
 )
 from .io import one_line, read_state, write_state
 from .join import check_up, faces_seen_side
@@ -545,6 +546,9 @@ class SurfaceReconstructor(BaseEstimator):
         warn when it cannot be (closed, curled onto itself, layered): a wrong mesh is said,
         never returned silently."""
         self.neighbour_preservation_ = neighbour_preservation(self.points_, self.embedding_)
+        volume = volume_warning(self.points_)
+        if volume:
+            warnings.warn(volume, ReconstructionWarning, stacklevel=3)
         if self.unexplained_ > UNEXPLAINED_LIMIT:
             warnings.warn(
                 f"the mesh leaves {100 * self.unexplained_:.0f} % of the points farther than "

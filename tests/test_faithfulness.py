@@ -9,13 +9,17 @@ import trimesh
 from reconstruct.errors import ReconstructionWarning
 from reconstruct.faithfulness import (
     MISSED_LIMIT,
+    PLANARITY_MIN_POINTS,
     TWO_LAYER_KURTOSIS,
+    VOLUME_PLANARITY,
     bridged_share,
     local_noise,
     missed_region,
     neighbour_preservation,
     residual_kurtosis,
+    surface_planarity,
     unexplained_fraction,
+    volume_warning,
 )
 from reconstruct.pipeline import SurfaceReconstructor
 
@@ -162,3 +166,25 @@ def test_points_in_two_layers_about_a_mesh_are_told_from_noise():
     assert residual_kurtosis(mesh, one) > 2.6
     assert residual_kurtosis(mesh, two) < TWO_LAYER_KURTOSIS
     assert unexplained_fraction(mesh, two) == 0.0  # what the other measures cannot see
+
+
+def blob(n, seed=0):
+    """(n, 3) points filling a volume: a 3D Gaussian."""
+    return np.random.default_rng(seed).normal(size=(n, 3))
+
+
+def test_a_volume_of_points_is_told_from_noisy_surfaces():
+    assert surface_planarity(blob(3000)) < VOLUME_PLANARITY - 0.15
+    assert surface_planarity(np.random.default_rng(1).uniform(size=(5000, 3))) < VOLUME_PLANARITY
+    for cloud in (noisy_sphere(1600, 0.02), noisy_sphere(20000, 0.01), flat_square(400, 0.05)):
+        assert surface_planarity(cloud) > VOLUME_PLANARITY + 0.15
+    assert "fill a volume" in volume_warning(blob(PLANARITY_MIN_POINTS))
+    assert volume_warning(blob(PLANARITY_MIN_POINTS - 1)) is None  # too few to tell
+    assert volume_warning(noisy_sphere(PLANARITY_MIN_POINTS)) is None
+
+
+@pytest.mark.parametrize("atlas", ["never", "always"])
+def test_a_fit_of_a_volume_of_points_says_so(atlas):
+    model = SurfaceReconstructor(max_layers=1, max_neurons=6, atlas=atlas)
+    with pytest.warns(ReconstructionWarning, match="fill a volume rather than lie on a surface"):
+        model.fit(blob(400))

@@ -81,11 +81,11 @@ PLANARITY_SCALES = (64, 256, 1024)
 PLANARITY_PROBES = 150
 PLANARITY_POINTS = 20000
 #: A cloud whose `surface_planarity` is under this fills a volume: no scale shows a surface.
-#: Measured: a 3D Gaussian of 200, 3,000 and 20,000 points 0.21-0.26, a uniform cube of 5,000
-#: and 20,000 points 0.40 and 0.31; the awkward objects, the chair, the knot, the tray and the
+#: Measured: a 3D Gaussian of 200, 3,000 and 20,000 points 0.21-0.27, a uniform cube of 5,000
+#: and 20,000 points 0.38 and 0.27; the awkward objects, the chair, the knot, the tray and the
 #: relief at 1.6k and 20k points, σ 0.5-1 % of the diagonal, 0.59 (the knot at σ 1 %, 20k) to
-#: 0.98, at σ 2 % 0.52 to 0.96; three 36-view scans' clouds 0.92-0.99 (a thick slab of
-#: points, 10:10:1, 0.79: a surface at its scale).
+#: 0.98; three 36-view scans' clouds 0.92-0.99. At σ 2 % the knot's 12 mm tube (3.5 mm of
+#: noise) is a filled rope of points, 0.26 at 20k: said to be a volume.
 VOLUME_PLANARITY = 0.5
 #: Fewer points than this do not tell a volume from a closed surface, whose every neighbourhood
 #: then spans much of it: a sphere and a mug of 100 points 0.56 and 0.48, of 60 points 0.23

@@ -119,7 +119,9 @@ def _fit_chart(points, lam, depth, random_state, n_neighbors, hidden_layers, emb
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ReconstructionWarning)
-            reconstructor = SurfaceReconstructor(**params).fit(points, embedded=embedded)
+            reconstructor = SurfaceReconstructor(**params)
+            reconstructor._atlas_chart = True
+            reconstructor.fit(points, embedded=embedded)
     except Exception as exc:  # a chart the method cannot fit is split, never hidden
         log.info("a chart of %d points failed to fit: %s", len(points), exc)
         return None, f"fit failed ({one_line(exc)})"

@@ -143,14 +143,19 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
 
 def rounding_to_single(vertices, faces=None) -> float | None:
     """How far (input units) rounding ``vertices`` (n, 3) to float32 moves one at most, when
-    that is too far (`SINGLE_PRECISION_TOLERANCE` of their diagonal, or an edge of ``faces``
-    (f, 3) collapsed); None when single precision holds them."""
+    that is too far (`SINGLE_PRECISION_TOLERANCE` of their finite ones' diagonal, an edge of
+    ``faces`` (f, 3) collapsed, or a value beyond float32's range); None when single precision
+    holds them."""
     vertices = np.asarray(vertices, dtype=np.float64)
-    if len(vertices) == 0:
+    finite = np.isfinite(vertices).all(axis=1)
+    if not finite.any():
         return None
-    single = vertices.astype(np.float32)
-    moved = float(np.abs(single - vertices).max())
-    diagonal = float(np.linalg.norm(np.ptp(single, axis=0).astype(np.float64)))
+    with np.errstate(over="ignore"):
+        single = vertices.astype(np.float32)
+    if not np.isfinite(single[finite]).all():  # beyond float32's range
+        return float("inf")
+    moved = float(np.abs(single[finite] - vertices[finite]).max())
+    diagonal = float(np.linalg.norm(np.ptp(single[finite], axis=0).astype(np.float64)))
     if moved > SINGLE_PRECISION_TOLERANCE * diagonal:
         return moved
     if faces is not None and len(faces):
@@ -190,7 +195,7 @@ def mesh_data(mesh: trimesh.Trimesh, file_type: str, name: str = "the mesh") -> 
     if rounding is not None and file_type in SINGLE_PRECISION_FORMATS:
         warnings.warn(f"{name}: {file_type.upper()} stores single precision, which moves "
                       f"vertices by up to {rounding:.3g} (coordinates up to "
-                      f"{float(np.abs(mesh.vertices).max()):.3g}); .ply or .obj keeps them",
+                      f"{float(np.abs(mesh.vertices).max()):.3g}); .ply keeps them",
                       ReconstructionWarning, stacklevel=2)
     data = mesh.export(file_type=file_type)
     return data.encode("utf-8") if isinstance(data, str) else data

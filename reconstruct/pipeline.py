@@ -112,8 +112,10 @@ SPECULATE_FROM = 10000
 #: without it (`mlp.DECAY_UP_TO`), as do an atlas's charts (not measured there).
 FINAL_WEIGHT_DECAY = 0.01
 _MESH_PARAMS = ("lam", "depth", "n_corners", "boundary", "grid_spacing", "variance", "extend")
-#: Training-only parameters: not saved (a loaded reconstruction re-meshes, it does not train).
-_TRAINING_PARAMS = ("mlp", "fine_tune", "warm_tolerance", "atlas", "max_points")
+#: Training-only parameters: not saved (a loaded reconstruction re-meshes, it does not train;
+#: an atlas's ``closed`` and ``voxel`` are in its own state).
+_TRAINING_PARAMS = ("mlp", "fine_tune", "warm_tolerance", "atlas", "max_points", "closed",
+                    "voxel")
 
 
 def _check_known(params: dict) -> None:
@@ -202,6 +204,10 @@ class SurfaceReconstructor(BaseEstimator):
     attributes (``embedding_``, ``surface_map_``, ...) are not set.
     """
 
+    #: A chart of an atlas (set by `reconstruct.chart_fit`): whether its points fill a volume is
+    #: the atlas's to say, once for the cloud (`faithfulness.volume_warning`, 35 ms a chart).
+    _atlas_chart = False
+
     def __init__(
         self,
         lam: float = DEFAULT_LAM,
@@ -287,9 +293,10 @@ class SurfaceReconstructor(BaseEstimator):
         without a word)."""
         if self.atlas not in ATLAS_MODES:
             raise InvalidInputError(f"atlas must be one of {ATLAS_MODES}, got {self.atlas!r}")
-        if self.closed not in (None, True, False):
+        if not (self.closed is None or isinstance(self.closed, bool)):
             raise InvalidInputError(f"closed must be None, True or False, got {self.closed!r}")
-        if not (isinstance(self.voxel, (int, float, np.number)) and 0 < self.voxel < np.inf):
+        if isinstance(self.voxel, (bool, np.bool_)) or not (
+                isinstance(self.voxel, (int, float, np.number)) and 0 < self.voxel < np.inf):
             raise InvalidInputError(f"voxel must be a number > 0, got {self.voxel!r}")
         self._new_mlp()._check_params()  # its search limits, as the search would check them
         seed = self.random_state
@@ -546,7 +553,7 @@ class SurfaceReconstructor(BaseEstimator):
         warn when it cannot be (closed, curled onto itself, layered): a wrong mesh is said,
         never returned silently."""
         self.neighbour_preservation_ = neighbour_preservation(self.points_, self.embedding_)
-        volume = volume_warning(self.points_)
+        volume = None if self._atlas_chart else volume_warning(self.points_)
         if volume:
             warnings.warn(volume, ReconstructionWarning, stacklevel=3)
         if self.unexplained_ > UNEXPLAINED_LIMIT:

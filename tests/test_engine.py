@@ -93,6 +93,13 @@ def test_a_face_on_a_voxel_boundary_is_one_layer_of_points():
     assert len(inside) == len(inside.points()) == 625
 
 
+def test_a_surface_whose_views_a_voxel_face_splits_is_seen_by_both():
+    cloud = VoxelCloud(2.0)  # one view on each side of z = 2 mm: seen twice, as one point
+    cloud.add([[1.0, 1.0, 1.99]])
+    cloud.add([[1.05, 1.0, 2.01]])
+    np.testing.assert_allclose(cloud.points(min_views=2), [[1.025, 1.0, 2.0]])
+
+
 def test_two_sheets_a_voxel_apart_are_not_joined():
     cloud = VoxelCloud(2.0)
     cloud.add(np.vstack([_flat_face(119.4), _flat_face(120.6, seed=1)]))

@@ -186,5 +186,23 @@ def test_a_volume_of_points_is_told_from_noisy_surfaces():
 @pytest.mark.parametrize("atlas", ["never", "always"])
 def test_a_fit_of_a_volume_of_points_says_so(atlas):
     model = SurfaceReconstructor(max_layers=1, max_neurons=6, atlas=atlas)
-    with pytest.warns(ReconstructionWarning, match="fill a volume rather than lie on a surface"):
+    with pytest.warns(ReconstructionWarning, match="no surface at any scale .* fill a volume"):
         model.fit(blob(400))
+
+
+def test_an_atlas_checks_its_cloud_for_a_volume_once_not_each_chart(monkeypatch):
+    import reconstruct.atlas as atlas_module
+    import reconstruct.pipeline as pipeline_module
+    from reconstruct.atlas import AtlasReconstructor
+
+    calls = {"atlas": 0, "chart": 0}
+
+    def counting(name, check):
+        def count(points):
+            calls[name] += 1
+            return check(points)
+        return count
+    monkeypatch.setattr(atlas_module, "volume_warning", counting("atlas", volume_warning))
+    monkeypatch.setattr(pipeline_module, "volume_warning", counting("chart", volume_warning))
+    atlas = AtlasReconstructor(n_jobs=1, chart_size=800).fit(noisy_sphere(2000))
+    assert len(atlas.charts_) > 1 and calls == {"atlas": 1, "chart": 0}

@@ -102,6 +102,14 @@ def test_a_mesh_near_the_origin_stays_single_precision(tmp_path):
     assert np.allclose(trimesh.load(path, process=False).vertices, mesh.vertices, atol=1e-4)
 
 
+def test_values_single_precision_cannot_hold_need_double():
+    far = _far_sphere().vertices.copy()
+    far[0] = np.nan  # a NaN row does not hide the others' rounding
+    assert rounding_to_single(far) > 0.01
+    assert rounding_to_single([[1e39, 0.0, 0.0], [1.001e39, 1.0, 1.0]]) == np.inf  # overflows
+    assert rounding_to_single(np.full((3, 3), np.nan)) is None
+
+
 def test_an_edge_that_single_precision_collapses_needs_double():
     mesh = trimesh.creation.icosphere(subdivisions=2, radius=75.0)
     vertices, faces = mesh.vertices.copy(), mesh.faces
@@ -114,7 +122,7 @@ def test_an_edge_that_single_precision_collapses_needs_double():
 @pytest.mark.parametrize("suffix", [".stl", ".glb"])
 def test_single_precision_formats_warn_far_from_the_origin(tmp_path, suffix):
     with pytest.warns(ReconstructionWarning, match=f"{suffix[1:].upper()} stores single "
-                                                    "precision.*ply or .obj keeps them"):
+                                                    "precision.*.ply keeps them"):
         write_mesh(_far_sphere(), tmp_path / f"far{suffix}")
     with warnings.catch_warnings():
         warnings.simplefilter("error")

@@ -68,22 +68,23 @@ class VoxelCloud:
     def points(self, min_views: int = 1) -> np.ndarray:
         """(m, 3) float64 means of the voxels that at least ``min_views`` point sets reached
         (a stray point seen once stays out), ordered by voxel key; the two voxels of a surface
-        split by a face of the grid give one, their joint mean (`SPLIT_LAYERS`)."""
-        keep = self._counts >= min_views
-        sums, counts = self._sums[keep], self._counts[keep]
-        means = sums / counts[:, None]
-        if len(means) < 2:
-            return means
-        distance, nearest = cKDTree(means).query(means, 2)
-        distance, nearest = distance[:, 1], nearest[:, 1]
-        index = np.arange(len(means))
-        first = ((nearest[nearest] == index) & (index < nearest)
-                 & (distance < SPLIT_LAYERS * self.voxel_mm))
-        if not first.any():
-            return means
-        second = nearest[first]
-        means[first] = (sums[first] + sums[second]) / (counts[first] + counts[second])[:, None]
-        return np.delete(means, second, axis=0)
+        split by a face of the grid give one, their joint mean (`SPLIT_LAYERS`), reached by
+        the point sets of both (its views split between them)."""
+        sums, counts = self._sums.copy(), self._counts.copy()
+        keep = np.ones(len(counts), bool)
+        if len(counts) >= 2:
+            means = sums / counts[:, None]
+            distance, nearest = cKDTree(means).query(means, 2)
+            distance, nearest = distance[:, 1], nearest[:, 1]
+            index = np.arange(len(means))
+            first = ((nearest[nearest] == index) & (index < nearest)
+                     & (distance < SPLIT_LAYERS * self.voxel_mm))
+            second = nearest[first]
+            sums[first] += sums[second]
+            counts[first] += counts[second]
+            keep[second] = False
+        keep &= counts >= min_views
+        return sums[keep] / counts[keep, None]
 
     def state(self) -> dict[str, np.ndarray]:
         return {"keys": self._keys, "sums": self._sums, "counts": self._counts}

@@ -189,7 +189,8 @@ def mesh_data(mesh: trimesh.Trimesh, file_type: str, name: str = "the mesh") -> 
     precision when single would not hold its vertices (`rounding_to_single`); STL and GLB,
     single precision by their format, then warn (`ReconstructionWarning`, naming ``name``)."""
     file_type = file_type.lower().lstrip(".")
-    rounding = rounding_to_single(mesh.vertices, mesh.faces)
+    rounding = (rounding_to_single(mesh.vertices, mesh.faces)  # (OBJ writes 8 decimals)
+                if file_type in ("ply", *SINGLE_PRECISION_FORMATS) else None)
     if rounding is not None and file_type == "ply":
         return _double_ply(mesh.vertices, mesh.faces)
     if rounding is not None and file_type in SINGLE_PRECISION_FORMATS:

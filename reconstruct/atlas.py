@@ -371,8 +371,9 @@ class AtlasReconstructor(BaseEstimator):
                 warnings.warn(
                     f"joined open, but charts holding {sides.mixed_[0]:.0%} of the samples face "
                     f"out of a volume and {sides.mixed_[1]:.0%} are seen from both sides: if "
-                    f"the object is closed, its walls are thinner than the noise, and "
-                    f"closed=True (--closed yes) joins them as thin shells",
+                    f"the object is closed, its walls are thinner than the noise or were seen "
+                    f"from one side only (a scan's unseen inside), and closed=True "
+                    f"(--closed yes) joins them as thin shells",
                     ReconstructionWarning, stacklevel=3)
             self.shells_, self.thin_ = sides.shells_, sides.thin_
             self.signs_ = self.signs_ * sides.turns_

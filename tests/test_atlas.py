@@ -649,6 +649,16 @@ def box_sides(points, normals, chart_points, two_layer=None) -> ChartSides:
                                     voxel=0.4, chart_points=chart_points, two_layer=two_layer)
 
 
+def beside_sheet(points, normals, charts, half: float):
+    """The box's cloud with a 2 ``half`` mm square sheet facing +x at x = 20 (its own chart):
+    points, normals, and the charts with the sheet's appended."""
+    y, z = np.meshgrid(np.arange(-half, half + 0.01, 0.4), np.arange(-half, half + 0.01, 0.4))
+    sheet = np.c_[np.full(y.size, 20.0), y.ravel(), z.ravel()]
+    every = np.concatenate([points, sheet])
+    every_normals = np.concatenate([normals, np.tile([1.0, 0.0, 0.0], (len(sheet), 1))])
+    return every, every_normals, [*charts, len(points) + np.arange(len(sheet))]
+
+
 def test_a_hole_in_the_charts_where_data_lies_leaves_the_charts_one_sided():
     # a closed box charted on its sides and bottom, its top left out of the charts but not of
     # the data (as the sheet graph leaves a junction out): the votes saw the inside through
@@ -688,11 +698,8 @@ def test_solid_parts_beside_charts_seen_from_both_sides_are_said_to_be_mixed():
     # said to be mixed (the atlas warns).
     points, normals, side = box_faces()
     charts = [np.flatnonzero(side == k) for k in np.unique(side)]
-    y, z = np.meshgrid(np.arange(-30.0, 30.01, 0.4), np.arange(-30.0, 30.01, 0.4))
-    wall = np.c_[np.full(y.size, 20.0), y.ravel(), z.ravel()]
-    every = np.concatenate([points, wall])
-    every_normals = np.concatenate([normals, np.tile([1.0, 0.0, 0.0], (len(wall), 1))])
-    charts.append(len(points) + np.arange(len(wall)))
+    every, every_normals, charts = beside_sheet(points, normals, charts, 30.0)
+    wall = every[len(points):]
     sides = box_sides(every, every_normals, charts)
     assert not sides.closed_ and sides.mixed_ is not None
     outward, two_sided = sides.mixed_
@@ -800,11 +807,7 @@ def test_a_wider_seal_closes_a_hole_only_where_it_leaves_no_chart_seen_from_both
     charts = [np.flatnonzero(side == k) for k in np.unique(side)]
     boxed = box_sides(points, normals, charts)
     assert boxed.closed_ and boxed.seal_ == 6.0 and not boxed.shells_.any()
-    y, z = np.meshgrid(np.arange(-10.0, 10.01, 0.4), np.arange(-10.0, 10.01, 0.4))
-    sheet = np.c_[np.full(y.size, 20.0), y.ravel(), z.ravel()]
-    every = np.concatenate([points, sheet])
-    every_normals = np.concatenate([normals, np.tile([1.0, 0.0, 0.0], (len(sheet), 1))])
-    charts.append(len(points) + np.arange(len(sheet)))
+    every, every_normals, charts = beside_sheet(points, normals, charts, 10.0)
     sides = box_sides(every, every_normals, charts)
     assert not sides.closed_ and sides.seal_ == 3.0  # the votes at the band say why
     assert (sides.votes_[:-1] > -0.5).all() and sides.votes_[:-1].max() < 0.5

@@ -85,21 +85,41 @@ def _read_ply(path: Path) -> np.ndarray:
 
 
 def _read_text(path: Path) -> np.ndarray:
+    """Rows of x, y, z and any further columns (normals, colour, intensity), split by spaces,
+    tabs, commas or semicolons (then a decimal comma is read as a point), after an optional
+    header line; a Leica PTS file's lines giving its blocks' point counts are skipped."""
     with open(path, encoding="utf-8", errors="strict") as handle:
         lines = [line.strip() for line in handle]
     rows = [line for line in lines if line and not line.startswith(("#", "//"))]
     if not rows:
         raise InvalidInputError(f"{path}: holds no points")
-    delimiter = "," if "," in rows[0] or (len(rows) > 1 and "," in rows[1]) else None
+    sample = rows[:2]
+    if any(";" in row for row in sample):
+        delimiter = ";"
+        rows = [row.replace(",", ".") for row in rows]  # "12,5;3,25;..": decimal commas
+    else:
+        delimiter = "," if any("," in row for row in sample) else None
     try:
-        float(rows[0].replace(",", " ").split()[0])
+        float(rows[0].replace(",", " ").replace(";", " ").split()[0])
     except ValueError:
         rows = rows[1:]  # a header line such as "x,y,z"
+    if len(rows) > 1 and rows[0].isdigit() and not rows[1].isdigit():
+        counts = [row for row in rows if row.isdigit()]  # a PTS file's block counts
+        rows = [row for row in rows if not row.isdigit()]
+        if sum(int(count) for count in counts) != len(rows):
+            raise InvalidInputError(
+                f"{path}: its point counts say {sum(int(c) for c in counts)} points, it holds "
+                f"{len(rows)} (a truncated or malformed PTS file)")
     if not rows:
         raise InvalidInputError(f"{path}: holds no points")
     try:
-        return np.loadtxt(rows, delimiter=delimiter, ndmin=2)
+        return np.loadtxt(rows, delimiter=delimiter, ndmin=2, usecols=(0, 1, 2))
     except ValueError as exc:
+        short = next((i for i, row in enumerate(rows) if len(row.split(delimiter)) < 3), None)
+        if short is not None:
+            raise InvalidInputError(f"{path}: expected rows of x, y, z, but a row has "
+                                    f"{len(rows[short].split(delimiter))} values: "
+                                    f"{rows[short][:40]!r}") from exc
         raise InvalidInputError(f"{path}: malformed text point cloud ({exc})") from exc
 
 

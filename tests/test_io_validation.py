@@ -33,6 +33,23 @@ def test_read_points_round_trips_every_format(tmp_path, suffix):
 
 
 @pytest.mark.parametrize(
+    ("name", "content"),
+    [
+        # Leica PTS: each block's point count, then x y z intensity r g b
+        ("scan.pts", "2\n0.5 1 2 -1200 10 20 30\n3 4 5 80 1 2 3\n1\n6 7 8 0 0 0 0\n"),
+        # a spreadsheet's export where the comma is the decimal mark
+        ("export.csv", "X;Y;Z\n0,5;1;2\n3;4;5\n6;7;8\n"),
+        ("tabs.xyz", "0.5\t1\t2\n3\t4\t5\n6\t7\t8\n"),
+        ("ragged.txt", "0.5 1 2 255 0 0\n3 4 5\n6 7 8 1 0 0 0.5\n"),  # colour on some rows
+    ],
+)
+def test_text_clouds_as_scanners_and_spreadsheets_write_them(tmp_path, name, content):
+    path = tmp_path / name
+    path.write_text(content)
+    np.testing.assert_array_equal(read_points(path), [[0.5, 1, 2], [3, 4, 5], [6, 7, 8]])
+
+
+@pytest.mark.parametrize(
     ("name", "content", "message"),
     [
         ("empty.ply", b"", "file is empty"),
@@ -44,6 +61,8 @@ def test_read_points_round_trips_every_format(tmp_path, suffix):
         ),
         ("words.xyz", b"a b c\nd e f\n", "malformed text"),
         ("two_columns.csv", b"1,2\n3,4\n", "expected rows of x, y, z"),
+        ("short_row.xyz", b"1 2 3\n4 5\n", "a row has 2 values: '4 5'"),
+        ("truncated.pts", b"3\n1 2 3 9\n4 5 6 9\n", "its point counts say 3 points, it holds 2"),
         ("cloud.las", b"xx", "unsupported point cloud format"),
     ],
 )

@@ -4,10 +4,10 @@ which charts are the one face of a part thinner than the noise.
 `exterior_votes` (reconstruct.join) asks each chart which of its sides is outside: a closed
 cloud's charts say so clearly (mug, torus, hook, figurine 20k: 81–100 % of the samples); an open
 one's, seen from both sides, do not (relief: none). A hole in the samples wider than twice the
-band lets the outside in and the charts round it look two-sided: a seal of twice the band is
-tried too, and taken where it leaves no chart two-sided (`WIDER_SEAL_TWO_SIDED`), else the cloud
-is joined open. Where the data lies in such a hole (points the sheet graph left out, at a
-junction) the votes count it as the join does: what it encloses is not outside
+band lets the outside in and every chart looks two-sided: a seal of twice the band is tried too,
+and taken when the charts it leaves two-sided hold few of the samples (`WIDER_SEAL_TWO_SIDED`),
+else the cloud is joined open. Where the data lies in such a hole (points the sheet graph left
+out, at a junction) the votes count it as the join does: what it encloses is not outside
 (`uncharted_points`, bench.atlas sheets 20k seeds 0 / 1: the foot's charts were two-sided
 through holes by the plates' roots, joined as shells, the foot hollow; Chamfer 0.454 / 0.438 ->
 0.416 / 0.429, Euler -30 / -16 -> -8 / 0, the gap's mid-plane outside 98.6 / 99.4 % -> 98.9 /
@@ -67,8 +67,9 @@ CLOSED_SHARE = 0.5
 #: charts still seen from both sides hold less than this share: the outside came in through
 #: a thin part's unseen ends (a 3 mm tube sampled on its side only, 3,000 points: none
 #: two-sided at the wider seal; joined closed, Euler 2), not through holes in the data round
-#: a part whose inside no view saw (two 36-view scans' clouds: mug 42 %, hook 13 %; joined
-#: closed, Euler -118, slots through the mug's walls, and -16).
+#: a part whose inside no view saw (two 36-view scans' clouds, mug and hook: 42 % and 13 %;
+#: before this share was asked, they were joined closed, Euler -118 with slots through the
+#: mug's walls, and -16; now open, as the scans' own meshes are: -75 and -35).
 WIDER_SEAL_TWO_SIDED = 0.05
 #: A cloud is closed too when charts seen from both sides whose points lie in two layers about
 #: their mesh (`faithfulness.LAYERED_KURTOSIS`: walls thinner than the noise, sampled on both

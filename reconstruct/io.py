@@ -87,40 +87,50 @@ def _read_ply(path: Path) -> np.ndarray:
 def _read_text(path: Path) -> np.ndarray:
     """Rows of x, y, z and any further columns (normals, colour, intensity), split by spaces,
     tabs, commas or semicolons (then a decimal comma is read as a point), after an optional
-    header line; a Leica PTS file's lines giving its blocks' point counts are skipped."""
-    with open(path, encoding="utf-8", errors="strict") as handle:
+    header line of words; a PTS file's lines giving its blocks' point counts (Leica's) are
+    skipped and checked against its rows."""
+    with open(path, encoding="utf-8-sig", errors="strict") as handle:  # -sig: Excel's BOM
         lines = [line.strip() for line in handle]
     rows = [line for line in lines if line and not line.startswith(("#", "//"))]
+    if rows and _is_header(rows[0]):
+        rows = rows[1:]  # such as "x,y,z" or "X (mm);Y (mm);Z (mm)"
+    counts = [row for row in rows if row.isdigit()]
+    data = [row for row in rows if not row.isdigit()]  # x y z ... under each count
+    if counts and (path.suffix.lower() == ".pts" or rows[0].isdigit()) and (
+            not data or len(data[0].split()) >= 3):
+        rows = data
+        said = sum(int(count) for count in counts)
+        if said != len(rows):
+            raise InvalidInputError(f"{path}: its point counts say {said} points, it holds "
+                                    f"{len(rows)} (a truncated or malformed PTS file)")
     if not rows:
         raise InvalidInputError(f"{path}: holds no points")
-    sample = rows[:2]
-    if any(";" in row for row in sample):
+    if ";" in rows[0]:
         delimiter = ";"
         rows = [row.replace(",", ".") for row in rows]  # "12,5;3,25;..": decimal commas
     else:
-        delimiter = "," if any("," in row for row in sample) else None
-    try:
-        float(rows[0].replace(",", " ").replace(";", " ").split()[0])
-    except ValueError:
-        rows = rows[1:]  # a header line such as "x,y,z"
-    if len(rows) > 1 and rows[0].isdigit() and not rows[1].isdigit():
-        counts = [row for row in rows if row.isdigit()]  # a PTS file's block counts
-        rows = [row for row in rows if not row.isdigit()]
-        if sum(int(count) for count in counts) != len(rows):
-            raise InvalidInputError(
-                f"{path}: its point counts say {sum(int(c) for c in counts)} points, it holds "
-                f"{len(rows)} (a truncated or malformed PTS file)")
-    if not rows:
-        raise InvalidInputError(f"{path}: holds no points")
+        delimiter = "," if "," in rows[0] else None
     try:
         return np.loadtxt(rows, delimiter=delimiter, ndmin=2, usecols=(0, 1, 2))
     except ValueError as exc:
-        short = next((i for i, row in enumerate(rows) if len(row.split(delimiter)) < 3), None)
+        short = next((row for row in rows if len(row.split(delimiter)) < 3), None)
         if short is not None:
-            raise InvalidInputError(f"{path}: expected rows of x, y, z, but a row has "
-                                    f"{len(rows[short].split(delimiter))} values: "
-                                    f"{rows[short][:40]!r}") from exc
+            n = len(short.split(delimiter))
+            raise InvalidInputError(f"{path}: expected rows of x, y, z, but a row has {n} "
+                                    f"value{'s' * (n != 1)}: {short[:40]!r}") from exc
         raise InvalidInputError(f"{path}: malformed text point cloud ({exc})") from exc
+
+
+def _is_header(row: str) -> bool:
+    """Whether a text cloud's first row names its columns: a field with a letter that is not a
+    number (not "1e-3", "nan" or "inf")."""
+    for field in row.replace(",", " ").replace(";", " ").split():
+        try:
+            float(field)
+        except ValueError:
+            if any(c.isalpha() for c in field):
+                return True
+    return False
 
 
 def check_mesh_path(path: str | os.PathLike) -> Path:

@@ -41,6 +41,9 @@ def test_read_points_round_trips_every_format(tmp_path, suffix):
         ("export.csv", "X;Y;Z\n0,5;1;2\n3;4;5\n6;7;8\n"),
         ("tabs.xyz", "0.5\t1\t2\n3\t4\t5\n6\t7\t8\n"),
         ("ragged.txt", "0.5 1 2 255 0 0\n3 4 5\n6 7 8 1 0 0 0.5\n"),  # colour on some rows
+        ("excel.csv", "\ufeffX (mm);Y;Z\n0,5;1;2\n3;4;5\n6;7;8\n"),  # "CSV UTF-8": a BOM
+        ("blocks.pts", "0\n2\n0.5 1 2 0 0 0 0\n3 4 5 0 0 0 0\n1\n6 7 8 0 0 0 0\n"),
+        ("semicolon_header.csv", "x;y;z\n0.5,1,2\n3,4,5\n6,7,8\n"),
     ],
 )
 def test_text_clouds_as_scanners_and_spreadsheets_write_them(tmp_path, name, content):
@@ -62,6 +65,9 @@ def test_text_clouds_as_scanners_and_spreadsheets_write_them(tmp_path, name, con
         ("words.xyz", b"a b c\nd e f\n", "malformed text"),
         ("two_columns.csv", b"1,2\n3,4\n", "expected rows of x, y, z"),
         ("short_row.xyz", b"1 2 3\n4 5\n", "a row has 2 values: '4 5'"),
+        ("one_column.xyz", b"1\n2.5\n3\n", "a row has 1 value: '1'"),
+        ("bad_first_row.xyz", b"1..5 2 3\n4 5 6\n", "could not convert string '1..5'"),
+        ("count_only.pts", b"5\n", "its point counts say 5 points, it holds 0"),
         ("truncated.pts", b"3\n1 2 3 9\n4 5 6 9\n", "its point counts say 3 points, it holds 2"),
         ("cloud.las", b"xx", "unsupported point cloud format"),
     ],

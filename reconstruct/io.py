@@ -89,8 +89,14 @@ def _read_text(path: Path) -> np.ndarray:
     tabs, commas or semicolons (then a decimal comma is read as a point), after an optional
     header line of words; a PTS file's lines giving its blocks' point counts (Leica's) are
     skipped and checked against its rows."""
-    with open(path, encoding="utf-8-sig", errors="strict") as handle:  # -sig: Excel's BOM
-        lines = [line.strip() for line in handle]
+    try:
+        with open(path, encoding="utf-8-sig", errors="strict") as handle:  # -sig: Excel's BOM
+            lines = [line.strip() for line in handle]
+    except UnicodeDecodeError:  # a header in a Windows code page ("X (µm)"): numbers are ASCII
+        with open(path, encoding="latin-1") as handle:
+            lines = [line.strip() for line in handle]
+        if any("\x00" in line for line in lines):
+            raise InvalidInputError(f"{path}: binary data, not a text point cloud") from None
     rows = [line for line in lines if line and not line.startswith(("#", "//"))]
     if rows and _is_header(rows[0]):
         rows = rows[1:]  # such as "x,y,z" or "X (mm);Y (mm);Z (mm)"

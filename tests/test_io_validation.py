@@ -48,8 +48,14 @@ def test_read_points_round_trips_every_format(tmp_path, suffix):
 )
 def test_text_clouds_as_scanners_and_spreadsheets_write_them(tmp_path, name, content):
     path = tmp_path / name
-    path.write_text(content)
+    path.write_text(content, encoding="utf-8")
     np.testing.assert_array_equal(read_points(path), [[0.5, 1, 2], [3, 4, 5], [6, 7, 8]])
+
+
+def test_a_spreadsheets_header_in_a_windows_code_page_is_read(tmp_path):
+    path = tmp_path / "export.csv"
+    path.write_bytes("X (µm);Y (µm);Z (µm)\n0,5;1;2\n3;4;5\n".encode("cp1252"))
+    np.testing.assert_array_equal(read_points(path), [[0.5, 1, 2], [3, 4, 5]])
 
 
 @pytest.mark.parametrize(
@@ -66,6 +72,7 @@ def test_text_clouds_as_scanners_and_spreadsheets_write_them(tmp_path, name, con
         ("two_columns.csv", b"1,2\n3,4\n", "expected rows of x, y, z"),
         ("short_row.xyz", b"1 2 3\n4 5\n", "a row has 2 values: '4 5'"),
         ("one_column.xyz", b"1\n2.5\n3\n", "a row has 1 value: '1'"),
+        ("renamed.xyz", b"LASF\x01\x00\xff\xfe binary", "binary data, not a text point cloud"),
         ("bad_first_row.xyz", b"1..5 2 3\n4 5 6\n", "could not convert string '1..5'"),
         ("count_only.pts", b"5\n", "its point counts say 5 points, it holds 0"),
         ("truncated.pts", b"3\n1 2 3 9\n4 5 6 9\n", "its point counts say 3 points, it holds 2"),

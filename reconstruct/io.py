@@ -22,7 +22,7 @@ import trimesh
 
 from .errors import InvalidInputError, ReconstructionWarning
 
-POINT_FORMATS = (".ply", ".xyz", ".txt", ".csv", ".pts", ".npy")
+POINT_FORMATS = (".ply", ".xyz", ".txt", ".csv", ".pts", ".pcd", ".npy")
 MESH_FORMATS = (".ply", ".obj", ".stl", ".glb")
 #: Mesh formats whose vertices are single precision whatever the mesh needs.
 SINGLE_PRECISION_FORMATS = ("stl", "glb")
@@ -53,6 +53,8 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
             points = np.load(path, allow_pickle=False)
         elif suffix == ".ply":
             points = _read_ply(path)
+        elif suffix == ".pcd":
+            points = _read_pcd(path)
         else:
             points = _read_text(path)
     except InvalidInputError:
@@ -82,6 +84,58 @@ def _read_ply(path: Path) -> np.ndarray:
     if len(vertices) == 0:
         raise InvalidInputError(f"{path}: PLY holds no vertices")
     return vertices
+
+
+#: A PCD header's TYPE letters as numpy's kinds.
+_PCD_KINDS = {"F": "f", "I": "i", "U": "u"}
+
+
+def _read_pcd(path: Path) -> np.ndarray:
+    """The x, y, z fields of a Point Cloud Library file (PCD v0.7, ``DATA ascii`` or
+    ``binary``; not ``binary_compressed``, whose LZF needs a library we do not ship)."""
+    header = {}
+    with open(path, "rb") as handle:
+        while "DATA" not in header:
+            line = handle.readline()
+            if not line:
+                raise InvalidInputError(f"{path}: malformed PCD (no DATA line in its header)")
+            words = line.decode("ascii", errors="replace").split()
+            if words and not words[0].startswith("#"):
+                header[words[0].upper()] = words[1:]
+        body = handle.read()
+    fields = header.get("FIELDS", [])
+    counts = [int(c) for c in header.get("COUNT", ["1"] * len(fields))]
+    if not {"x", "y", "z"} <= set(fields):
+        raise InvalidInputError(f"{path}: its PCD fields are {' '.join(fields) or 'none'}, "
+                                f"without x, y and z")
+    if len(counts) != len(fields) or len(header.get("SIZE", [])) != len(fields) or len(
+            header.get("TYPE", [])) != len(fields):
+        raise InvalidInputError(f"{path}: malformed PCD (FIELDS, SIZE, TYPE and COUNT differ "
+                                f"in length)")
+    n = int(header.get("POINTS", [0])[0]) or int(np.prod(
+        [int(header.get(k, ["1"])[0]) for k in ("WIDTH", "HEIGHT")]))
+    kind = (header["DATA"] or ["?"])[0].lower()
+    if kind == "ascii":
+        first = np.cumsum([0, *counts])  # a field of COUNT k takes k columns
+        rows = [line for line in body.decode("ascii", errors="replace").splitlines()
+                if line.strip()]
+        return np.loadtxt(rows, ndmin=2, usecols=[int(first[fields.index(a)])
+                                                  for a in "xyz"])
+    if kind != "binary":
+        raise InvalidInputError(f"{path}: PCD data {kind!r} is not read: save it as binary or "
+                                f"ascii (PCL's pcl_convert_pcd_ascii_binary)")
+    try:
+        dtype = np.dtype([(f"f{i}", "<" + _PCD_KINDS[t.upper()] + s, (c,) if c > 1 else ())
+                          for i, (t, s, c) in enumerate(zip(header["TYPE"], header["SIZE"],
+                                                            counts, strict=True))])
+    except (KeyError, TypeError) as exc:
+        raise InvalidInputError(f"{path}: malformed PCD (TYPE {' '.join(header['TYPE'])}, "
+                                f"SIZE {' '.join(header['SIZE'])})") from exc
+    if len(body) < n * dtype.itemsize:
+        raise InvalidInputError(f"{path}: its header says {n} points, it holds "
+                                f"{len(body) // dtype.itemsize} (a truncated PCD file)")
+    data = np.frombuffer(body, dtype, count=n)
+    return np.column_stack([data[f"f{fields.index(a)}"] for a in "xyz"]).astype(np.float64)
 
 
 def _read_text(path: Path) -> np.ndarray:

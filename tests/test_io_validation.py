@@ -52,6 +52,42 @@ def test_text_clouds_as_scanners_and_spreadsheets_write_them(tmp_path, name, con
     np.testing.assert_array_equal(read_points(path), [[0.5, 1, 2], [3, 4, 5], [6, 7, 8]])
 
 
+def pcd_header(fields, sizes, types, counts, n, data):
+    """A PCD v0.7 header (bytes) for ``n`` points."""
+    return (f"# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS {fields}\n"
+            f"SIZE {sizes}\nTYPE {types}\nCOUNT {counts}\nWIDTH {n}\nHEIGHT 1\n"
+            f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {data}\n").encode()
+
+
+def test_pcd_files_as_pcl_writes_them(tmp_path):
+    # ascii, a field of COUNT 2 before x; binary, float64 x y z among other fields (PCL's
+    # padding "_" and a packed colour)
+    ascii_path = tmp_path / "ascii.pcd"
+    ascii_path.write_bytes(pcd_header("uv x y z", "4 4 4 4", "F F F F", "2 1 1 1", 3, "ascii")
+                           + b"9 9 0.5 1 2\n9 9 3 4 5\n9 9 6 7 8\n")
+    expected = [[0.5, 1, 2], [3, 4, 5], [6, 7, 8]]
+    np.testing.assert_array_equal(read_points(ascii_path), expected)
+    dtype = np.dtype([("_", "<u1", (3,)), ("x", "<f8"), ("y", "<f8"), ("z", "<f8"),
+                      ("rgb", "<u4")])
+    rows = np.zeros(3, dtype)
+    rows["x"], rows["y"], rows["z"] = np.array(expected).T
+    binary_path = tmp_path / "binary.pcd"
+    binary_path.write_bytes(pcd_header("_ x y z rgb", "1 8 8 8 4", "U F F F U", "3 1 1 1 1",
+                                       3, "binary") + rows.tobytes())
+    np.testing.assert_array_equal(read_points(binary_path), expected)
+    # a truncated file, a compressed one, one without coordinates
+    (tmp_path / "short.pcd").write_bytes(binary_path.read_bytes()[:-10])
+    (tmp_path / "packed.pcd").write_bytes(pcd_header("x y z", "4 4 4", "F F F", "1 1 1", 3,
+                                                     "binary_compressed") + b"\x00" * 20)
+    (tmp_path / "flat.pcd").write_bytes(pcd_header("u v", "4 4", "F F", "1 1", 1, "ascii")
+                                        + b"1 2\n")
+    for name, message in [("short.pcd", "header says 3 points, it holds 2"),
+                          ("packed.pcd", "'binary_compressed' is not read"),
+                          ("flat.pcd", "fields are u v, without x, y and z")]:
+        with pytest.raises(InvalidInputError, match=message):
+            read_points(tmp_path / name)
+
+
 def test_a_spreadsheets_header_in_a_windows_code_page_is_read(tmp_path):
     path = tmp_path / "export.csv"
     path.write_bytes("X (µm);Y (µm);Z (µm)\n0,5;1;2\n3;4;5\n".encode("cp1252"))

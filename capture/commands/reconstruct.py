@@ -79,8 +79,9 @@ def add_parser(subparsers) -> None:
         "reconstruct",
         help="turn a noisy point cloud (PLY, XYZ/CSV, NPY) into a mesh (PLY, OBJ, STL, GLB)",
     )
-    parser.add_argument("input", help="point cloud file: .ply, .npy, or text (.xyz .txt .csv "
-                        ".pts: x y z first on each row, by spaces, tabs, commas or semicolons)")
+    parser.add_argument("input", help="point cloud file: .ply, .pcd (PCL's, not compressed), "
+                        ".npy, or text (.xyz .txt .csv .pts: x y z first on each row, by spaces, "
+                        "tabs, commas or semicolons)")
     parser.add_argument("-o", "--output", required=True, help="mesh file; format by extension")
     add_reconstruction_options(parser)
     from reconstruct.pipeline import MAX_POINTS

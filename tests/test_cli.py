@@ -75,7 +75,7 @@ def test_max_points_option(tmp_path, capsys):
         (b"ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n", "PLY"),
         (b"nan nan nan\n" * 30, "NaN or infinite"),
         ("".join(f"{i} {2 * i} {3 * i}\n" for i in range(100)).encode(), "collinear"),
-        (bytes(range(256)) * 20, "cannot read XYZ"),  # binary, not text
+        (bytes(range(256)) * 20, "binary data, not a text point cloud"),
         (b"0.1 0.2 0.3\n0.5 0.1 0.9\n0.3 0.3 0.1\n", "needs at least"),  # too few points
         (b"1 2 3\n" * 300, "needs at least"),  # one point, 300 times
         (None, "is a directory"),

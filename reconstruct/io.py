@@ -119,6 +119,8 @@ def _read_pcd(path: Path) -> np.ndarray:
         first = np.cumsum([0, *counts])  # a field of COUNT k takes k columns
         rows = [line for line in body.decode("ascii", errors="replace").splitlines()
                 if line.strip()]
+        if not rows:
+            return np.zeros((0, 3))  # (said to hold no points)
         return np.loadtxt(rows, ndmin=2, usecols=[int(first[fields.index(a)])
                                                   for a in "xyz"])
     if kind != "binary":

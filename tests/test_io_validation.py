@@ -81,9 +81,12 @@ def test_pcd_files_as_pcl_writes_them(tmp_path):
                                                      "binary_compressed") + b"\x00" * 20)
     (tmp_path / "flat.pcd").write_bytes(pcd_header("u v", "4 4", "F F", "1 1", 1, "ascii")
                                         + b"1 2\n")
+    (tmp_path / "empty.pcd").write_bytes(pcd_header("x y z", "4 4 4", "F F F", "1 1 1", 0,
+                                                    "ascii"))
     for name, message in [("short.pcd", "header says 3 points, it holds 2"),
                           ("packed.pcd", "'binary_compressed' is not read"),
-                          ("flat.pcd", "fields are u v, without x, y and z")]:
+                          ("flat.pcd", "fields are u v, without x, y and z"),
+                          ("empty.pcd", "holds no points")]:
         with pytest.raises(InvalidInputError, match=message):
             read_points(tmp_path / name)
 

@@ -295,7 +295,7 @@ class ChartSides:
             outward = np.abs(votes) >= VOTE_LIMIT
             tried.append((seal, probe, votes, two_sided, outward))
             closed = bool(sizes[outward].sum() >= CLOSED_SHARE * total)
-            if seal > self.band:  # the wider seal: only where it leaves no chart two-sided
+            if seal > self.band:  # the wider seal: only when it leaves few charts two-sided
                 closed &= bool(sizes[~outward & (two_sided >= VOTE_LIMIT)].sum()
                                < WIDER_SEAL_TWO_SIDED * total)
             if self.closed is not None:

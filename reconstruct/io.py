@@ -121,8 +121,7 @@ def _read_pcd(path: Path) -> np.ndarray:
                 if line.strip()]
         if not rows:
             return np.zeros((0, 3))  # (said to hold no points)
-        return np.loadtxt(rows, ndmin=2, usecols=[int(first[fields.index(a)])
-                                                  for a in "xyz"])
+        return _loaded_rows(path, rows, None, [int(first[fields.index(a)]) for a in "xyz"])
     if kind != "binary":
         raise InvalidInputError(f"{path}: PCD data {kind!r} is not read: save it as binary or "
                                 f"ascii (PCL's pcl_convert_pcd_ascii_binary)")
@@ -156,15 +155,8 @@ def _read_text(path: Path) -> np.ndarray:
     rows = [line for line in lines if line and not line.startswith(("#", "//"))]
     if rows and _is_header(rows[0]):
         rows = rows[1:]  # such as "x,y,z" or "X (mm);Y (mm);Z (mm)"
-    counts = [row for row in rows if row.isdigit()]
-    data = [row for row in rows if not row.isdigit()]  # x y z ... under each count
-    if counts and (path.suffix.lower() == ".pts" or rows[0].isdigit()) and (
-            not data or len(data[0].split()) >= 3):
-        rows = data
-        said = sum(int(count) for count in counts)
-        if said != len(rows):
-            raise InvalidInputError(f"{path}: its point counts say {said} points, it holds "
-                                    f"{len(rows)} (a truncated or malformed PTS file)")
+    if rows and (path.suffix.lower() == ".pts" or rows[0].isdigit()):
+        rows = _without_pts_counts(path, rows)
     if not rows:
         raise InvalidInputError(f"{path}: holds no points")
     if ";" in rows[0]:
@@ -172,10 +164,31 @@ def _read_text(path: Path) -> np.ndarray:
         rows = [row.replace(",", ".") for row in rows]  # "12,5;3,25;..": decimal commas
     else:
         delimiter = "," if "," in rows[0] else None
+    return _loaded_rows(path, rows, delimiter, (0, 1, 2))
+
+
+def _without_pts_counts(path: Path, rows: list[str]) -> list[str]:
+    """``rows`` without a PTS file's lines giving its blocks' point counts, checked against
+    the rows under them; as they are when they are not such a file's (a column of numbers)."""
+    counts = [row for row in rows if row.isdigit()]
+    data = [row for row in rows if not row.isdigit()]  # x y z ... under each count
+    if not counts or (data and len(data[0].split()) < 3):
+        return rows
+    said = sum(int(count) for count in counts)
+    if said != len(data):
+        raise InvalidInputError(f"{path}: its point counts say {said} points, it holds "
+                                f"{len(data)} (a truncated or malformed PTS file)")
+    return data
+
+
+def _loaded_rows(path: Path, rows: list[str], delimiter: str | None, columns) -> np.ndarray:
+    """(n, 3) the ``columns`` (x, y, z) of text ``rows``; a row without them, or a value that
+    is not a number, raises `InvalidInputError` naming it."""
     try:
-        return np.loadtxt(rows, delimiter=delimiter, ndmin=2, usecols=(0, 1, 2))
+        return np.loadtxt(rows, delimiter=delimiter, ndmin=2, usecols=columns)
     except ValueError as exc:
-        short = next((row for row in rows if len(row.split(delimiter)) < 3), None)
+        needed = max(columns) + 1
+        short = next((row for row in rows if len(row.split(delimiter)) < needed), None)
         if short is not None:
             n = len(short.split(delimiter))
             raise InvalidInputError(f"{path}: expected rows of x, y, z, but a row has {n} "

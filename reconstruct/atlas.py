@@ -81,7 +81,7 @@ from .kdtree import PointTree
 from .mesh_edges import topology, turn_faces
 from .sdf_grid import SparseSDF
 from .sheet_graph import SheetGraph
-from .validation import check_points, random_subset
+from .validation import ATLAS_POINTS, check_points, random_subset
 
 log = logging.getLogger(__name__)
 
@@ -159,7 +159,7 @@ class AtlasReconstructor(BaseEstimator):
                  shell: float = 1.0, closed: bool | None = None,
                  hidden_layers: tuple[int, ...] | None = None, n_neighbors: int | None = None,
                  max_layers: int = 2, max_neurons: int = 20,
-                 graph: SheetGraph | None = None, max_points: int = 20000,
+                 graph: SheetGraph | None = None, max_points: int | None = ATLAS_POINTS,
                  n_jobs: int | None = -1,
                  up: tuple[float, float, float] | None = (0.0, 0.0, 1.0),
                  random_state: int | None = 0):

@@ -56,7 +56,7 @@ from .mlp import AdaptiveMLP
 from .outline import border_inset, border_spacing, extend_outline
 from .pipeline_state import STATE_FORMAT, reconstruction_from_state, reconstruction_state
 from .spline import BoundarySpline, SplineInput, spline_input
-from .validation import check_points, random_subset
+from .validation import ATLAS_POINTS, check_max_points, check_points, random_subset
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +115,7 @@ _MESH_PARAMS = ("lam", "depth", "n_corners", "boundary", "grid_spacing", "varian
 #: Training-only parameters: not saved (a loaded reconstruction re-meshes, it does not train;
 #: an atlas's ``closed`` and ``voxel`` are in its own state).
 _TRAINING_PARAMS = ("mlp", "fine_tune", "warm_tolerance", "atlas", "max_points", "closed",
-                    "voxel")
+                    "voxel", "atlas_points")
 
 
 def _check_known(params: dict) -> None:
@@ -167,9 +167,11 @@ class SurfaceReconstructor(BaseEstimator):
         From ``SPECULATE_FROM`` points it decomposes the cloud for the atlas in a worker
         process while the one chart is searched (stopped if one chart holds the cloud);
         "never" keeps one chart (and warns); "always" fits an atlas.
-    closed, voxel : an atlas's (`AtlasReconstructor`): None decides whether the cloud is
-        closed, True joins it as the boundary of a volume, False as an open surface; the grid
-        spacing of its join in median point spacings.
+    closed, voxel, atlas_points : an atlas's (`AtlasReconstructor`): None decides whether the
+        cloud is closed, True joins it as the boundary of a volume, False as an open surface;
+        the grid spacing of its join in median point spacings; how many points of a denser
+        cloud it charts (its ``max_points``, `validation.ATLAS_POINTS`; None: all; at most
+        ``max_points``, the points a fit takes).
     mlp : an unfitted `AdaptiveMLP` (cloned by `fit`) used instead of the one ``max_layers``,
         ``max_neurons``, ``activation``, ``retrain`` and ``random_state`` describe: other
         training budgets, or ``hidden_layers`` to skip the search.
@@ -232,6 +234,7 @@ class SurfaceReconstructor(BaseEstimator):
         max_points: int | None = MAX_POINTS,
         closed: bool | None = None,
         voxel: float = 0.5,
+        atlas_points: int | None = ATLAS_POINTS,
     ):
         self.lam = lam
         self.depth = depth
@@ -255,6 +258,7 @@ class SurfaceReconstructor(BaseEstimator):
         self.max_points = max_points
         self.closed = closed
         self.voxel = voxel
+        self.atlas_points = atlas_points
 
     def fit(self, points, warm_start: SurfaceReconstructor | None = None,
             embedded: Embedded | None = None) -> SurfaceReconstructor:
@@ -298,6 +302,15 @@ class SurfaceReconstructor(BaseEstimator):
         if isinstance(self.voxel, (bool, np.bool_)) or not (
                 isinstance(self.voxel, (int, float, np.number)) and 0 < self.voxel < np.inf):
             raise InvalidInputError(f"voxel must be a number > 0, got {self.voxel!r}")
+        check_max_points(self.max_points)
+        check_max_points(self.atlas_points, "atlas_points")
+        # more than a fit takes, asked (the default's 20,000 of a fit of 300 are its 300)
+        if self.max_points is not None and (self.atlas_points is None or self.atlas_points > max(
+                self.max_points, ATLAS_POINTS)):
+            raise InvalidInputError(
+                f"atlas_points {self.atlas_points or 'None (all)'} is above max_points "
+                f"{self.max_points}: an atlas charts the points a fit takes (raise max_points "
+                f"too, or None: --max-points all)")
         self._new_mlp()._check_params()  # its search limits, as the search would check them
         seed = self.random_state
         if isinstance(seed, (int, np.integer)) and seed < 0:
@@ -499,6 +512,7 @@ class SurfaceReconstructor(BaseEstimator):
 
         return AtlasReconstructor(lam=self.lam, depth=self.depth, up=self.up,
                                   closed=self.closed, voxel=self.voxel,
+                                  max_points=self.atlas_points,
                                   max_layers=self.max_layers, max_neurons=self.max_neurons,
                                   random_state=self.random_state)
 

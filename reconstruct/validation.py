@@ -173,14 +173,20 @@ def _nearer(distance: np.ndarray, reach: float, share: float) -> np.ndarray:
 
 #: The fewest points a ``max_points`` may keep.
 MIN_MAX_POINTS = 100
+#: The points an atlas charts of a denser cloud (`AtlasReconstructor`'s ``max_points``,
+#: `SurfaceReconstructor`'s ``atlas_points``): at scanner noise more add noise to smooth
+#: objects, but detail to detailed ones (a scanned dragon at 100k points, σ 0.5 %: Chamfer-L1
+#: 0.348 on 20,000, 0.297 on 30,000, 0.254 on 50,000 in 38 s and 1.6 GB, 0.403 on all, whose
+#: join's grid is finer than the noise; a mug at 100k: 0.223 on 20,000, 0.260 on 40,000).
+ATLAS_POINTS = 20_000
 
 
-def check_max_points(limit) -> None:
-    """Refuse a ``max_points`` (`InvalidInputError`) that is neither None nor a whole number of
-    at least `MIN_MAX_POINTS`."""
+def check_max_points(limit, name: str = "max_points") -> None:
+    """Refuse a ``max_points`` (`InvalidInputError`, naming it ``name``) that is neither None nor
+    a whole number of at least `MIN_MAX_POINTS`."""
     if limit is not None and not (isinstance(limit, (int, np.integer))
                                   and not isinstance(limit, bool) and limit >= MIN_MAX_POINTS):
-        raise InvalidInputError(f"max_points must be a whole number >= {MIN_MAX_POINTS} or "
+        raise InvalidInputError(f"{name} must be a whole number >= {MIN_MAX_POINTS} or "
                                 f"None, got {limit!r}")
 
 

@@ -6,6 +6,7 @@ import sys
 import numpy as np
 import pytest
 import trimesh
+from surface_checks import sphere_cloud
 
 from capture.cli import main
 
@@ -66,6 +67,21 @@ def test_max_points_option(tmp_path, capsys):
             main(["reconstruct", str(cloud), "-o", str(out), "--max-points", bad])
         assert exit_.value.code == 2
         assert f"expected all or a whole number >= 100, got '{bad}'" in capsys.readouterr().err
+
+
+def test_atlas_points_option(tmp_path, capsys):
+    # a closed cloud goes to the atlas, which charts the N points asked of a denser cloud
+    # (--max-points is one chart's: the atlas's was left at its 20,000 without a word)
+    cloud = tmp_path / "sphere.npy"
+    np.save(cloud, sphere_cloud(1500))
+    out = tmp_path / "mesh.ply"
+    fast = ["--max-layers", "1", "--max-neurons", "6"]
+    assert main(["reconstruct", str(cloud), "-o", str(out), *fast, "--atlas-points", "900"]) == 0
+    assert "atlas of 900 of the 1500 points" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:
+        main(["reconstruct", str(cloud), "-o", str(out), "--atlas-points", "50"])
+    assert exit_.value.code == 2
+    assert "expected all or a whole number >= 100, got '50'" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(

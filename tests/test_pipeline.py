@@ -215,6 +215,9 @@ def test_unfitted_and_bad_parameters(plane_model):
     ({"atlas": "sometimes"}, "atlas must be one of"),
     ({"max_points": 50}, "max_points must be a whole number >= 100 or None, got 50"),
     ({"max_points": 2e4}, "max_points must be a whole number >= 100 or None, got 20000.0"),
+    ({"atlas_points": 50}, "atlas_points must be a whole number >= 100 or None, got 50"),
+    ({"atlas_points": 50000}, "atlas_points 50000 is above max_points 40000: .* --max-points all"),
+    ({"atlas_points": None, "max_points": 30000}, r"atlas_points None \(all\) is above max_po"),
 ])
 def test_bad_fit_parameters_are_refused_before_any_work(params, message):
     # a sphere goes straight to the atlas, whose charts never ran the search that checked

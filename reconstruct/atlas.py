@@ -53,7 +53,14 @@ from .chart_fit import (
 )
 from .chart_logs import chart_steps
 from .chart_parts import ChartPart, parts_of
-from .chart_sides import ChartSides, UnchartedTracker, two_layer_charts, uncharted_points
+from .chart_sides import (
+    ChartSides,
+    UnchartedTracker,
+    chart_noise,
+    two_layer_charts,
+    uncharted_points,
+    uncharted_reach,
+)
 from .charts import ChartDecomposition
 from .closed_grid import ClosedSDF
 from .errors import (
@@ -146,7 +153,8 @@ class AtlasReconstructor(BaseEstimator):
     ``watertight_``, ``euler_``, ``winding_consistent_``, ``timings_`` seconds per stage,
     ``votes_`` (c,) each chart's exterior vote (with a band of ``seal_`` voxels), ``shells_``
     (c,) charts joined as thin shells, ``thin_`` (c,) those of them charted on one face of a thin
-    part (`reconstruct.chart_sides`), ``closed_``
+    part (`reconstruct.chart_sides`), ``noise_`` the charts' median residual RMS (what counts
+    as data the charts left out is beyond its noise: `chart_sides.uncharted_reach`), ``closed_``
     whether the cloud was joined as the boundary of a volume (then a mesh that is not
     watertight is warned about); after a `remesh`, ``remesh_counts_``: charts meshed, join
     samples moved, grid nodes evaluated, charts re-meshed in the worker process
@@ -286,6 +294,7 @@ class AtlasReconstructor(BaseEstimator):
             self.__dict__.pop(name, None)
         self.timings_["fits"] = time.perf_counter() - started - self.timings_["charts"]
         self.signs_ = orient_charts([c.mesh_ for c in self.charts_], self.chart_points_, points)
+        self.noise_ = chart_noise([c.mesh_ for c in self.charts_], self.chart_points_, points)
         self._join()
         self.timings_["total"] = time.perf_counter() - started
         log.info("atlas: %d charts, %d faces, watertight %s, Euler %d (%.1f s)",
@@ -361,7 +370,8 @@ class AtlasReconstructor(BaseEstimator):
                 self.points_, voxel))
             sides = ChartSides(band=self.band, closed=self.closed).fit(
                 chart_samples_, chart_normals, self.points_, self.decomposition_.spacing_,
-                voxel, self.chart_points_, two_layer, layered=self._layered_charts)
+                voxel, self.chart_points_, two_layer, layered=self._layered_charts,
+                reach=self._uncharted_reach())
             self.closed_, self.seal_, self.votes_ = sides.closed_, sides.seal_, sides.votes_
             if sides.layered_ is not None:
                 warnings.warn(
@@ -441,10 +451,17 @@ class AtlasReconstructor(BaseEstimator):
     def _uncharted_tracker(self) -> UnchartedTracker:
         """The closed join's `UnchartedTracker` of the charted points, kept between re-meshes."""
         tracker = self.__dict__.get("_tracker")
-        spacing = self.decomposition_.spacing_
-        if tracker is None or tracker.points is not self.points_ or tracker.spacing != spacing:
-            tracker = self._tracker = UnchartedTracker(self.points_, spacing)
+        spacing, reach = self.decomposition_.spacing_, self._uncharted_reach()
+        if (tracker is None or tracker.points is not self.points_ or tracker.spacing != spacing
+                or tracker.reach != reach):
+            tracker = self._tracker = UnchartedTracker(self.points_, spacing, reach)
         return tracker
+
+    def _uncharted_reach(self) -> float:
+        """How far from every joined sample a point is one the charts left out
+        (`chart_sides.uncharted_reach` of the spacing and ``noise_``; a state saved before the
+        noise was measured: the spacing's, as it was fitted)."""
+        return uncharted_reach(self.decomposition_.spacing_, self.__dict__.get("noise_"))
 
     def _exterior_probe(self, chart_samples_, voxel: float) -> ExteriorProbe:
         """The `ExteriorProbe` the charts' sides were decided with, kept for re-meshing (a
@@ -453,7 +470,8 @@ class AtlasReconstructor(BaseEstimator):
         if "_probe" not in self.__dict__:
             everything = np.concatenate([s for s in chart_samples_ if len(s)])
             self._probe = ExteriorProbe(everything, voxel, self.seal_, uncharted_points(
-                self.points_, everything, self.decomposition_.spacing_))
+                self.points_, everything, self.decomposition_.spacing_,
+                reach=self._uncharted_reach()))
         return self._probe
 
     def _face_seen_side(self) -> None:

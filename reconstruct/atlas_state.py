@@ -51,6 +51,8 @@ def atlas_state(atlas) -> tuple[dict, dict[str, np.ndarray]]:
         "closed": bool(atlas.closed_),
         "seal": float(atlas.seal_),
     }
+    if atlas.__dict__.get("noise_") is not None:
+        meta["noise"] = float(atlas.noise_)
     if hasattr(atlas, "_sdf") and hasattr(atlas._sdf, "samples_"):
         meta["join"], join_arrays = atlas._sdf.state(prefix="join_")
         arrays.update(join_arrays)
@@ -101,6 +103,8 @@ def atlas_from_state(cls, meta: dict, arrays: dict):
     atlas.decomposition_.spacing_ = float(meta["spacing"])
     atlas.faults_ = [str(fault) for fault in meta["faults"]]
     atlas.closed_, atlas.seal_ = bool(meta["closed"]), float(meta["seal"])
+    if meta.get("noise") is not None:  # (states saved before it was measured have none)
+        atlas.noise_ = float(meta["noise"])
     atlas.shells_ = np.asarray(arrays["shells"], bool)
     # states written before thin parts were told apart have none
     atlas.thin_ = (np.asarray(arrays["thin"], bool) if "thin" in arrays

@@ -24,6 +24,7 @@ from reconstruct.chart_sides import (
     behind_share,
     thin_charts,
     two_layer_charts,
+    uncharted_reach,
 )
 from reconstruct.embedding import SurfaceEmbedding
 from reconstruct.errors import (
@@ -157,6 +158,24 @@ def test_charts_fitted_in_two_processes_give_the_same_mesh():
     assert len(one.charts_) > 2
     np.testing.assert_array_equal(one.mesh_.vertices, two.mesh_.vertices)
     np.testing.assert_array_equal(one.mesh_.faces, two.mesh_.faces)
+
+
+def test_the_noise_tails_of_a_solid_are_not_data_left_out():
+    # a sphere at a noise near its spacing (20 % of its points over a spacing from every
+    # sample): its charts were joined as thin shells with walls inside the solid (8 of them);
+    # the points the charts leave out are those beyond the noise too (`uncharted_reach`)
+    atlas = AtlasReconstructor(n_jobs=1, max_layers=1, max_neurons=6).fit(
+        sphere_cloud(6000, sigma=0.02))
+    assert 2 * atlas.noise_ > atlas.decomposition_.spacing_  # the noise rule decides
+    assert atlas.closed_ and not atlas.shells_.any()
+    assert atlas.watertight_ and atlas.euler_ == 2
+    radii = np.linalg.norm(atlas.mesh_.vertices, axis=1)
+    assert radii.min() > 0.85  # no wall inside
+
+
+def test_uncharted_reach_is_the_spacing_or_twice_the_noise():
+    assert uncharted_reach(2.0) == uncharted_reach(2.0, 0.9) == 2.0
+    assert uncharted_reach(2.0, 1.5) == 3.0
 
 
 def test_a_cloud_denser_than_max_points_is_charted_on_a_subset():

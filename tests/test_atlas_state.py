@@ -13,6 +13,7 @@ from surface_checks import sphere_cloud
 
 from capture.cli import main
 from reconstruct.atlas import AtlasReconstructor
+from reconstruct.chart_sides import uncharted_reach
 from reconstruct.errors import InvalidInputError
 from reconstruct.io import read_state
 from reconstruct.pipeline import SurfaceReconstructor
@@ -49,6 +50,7 @@ def test_a_loaded_atlas_remeshes_to_the_same_mesh(saved):
     same_mesh(loaded.remesh(lam=3.0, depth=3), model.remesh(lam=3.0, depth=3))
     atlas = AtlasReconstructor.load(path)  # the atlas alone reads the same file
     np.testing.assert_array_equal(atlas.signs_, model.atlas_.signs_)
+    assert atlas.noise_ == model.atlas_.noise_ > 0  # (what counts as data left out)
     for before, after in zip(model.atlas_.chart_points_, atlas.chart_points_, strict=True):
         np.testing.assert_array_equal(before, after)
     alone = AtlasReconstructor.load(model.atlas_.save(path.with_name("alone.npz")))
@@ -59,6 +61,18 @@ def test_a_loaded_atlas_remeshes_to_the_same_mesh(saved):
     assert wrapped.max_points == SurfaceReconstructor().max_points  # a training parameter
     same_mesh(wrapped.remesh(), model.mesh_)
     model.remesh(lam=2.0)  # as the other tests expect it
+
+
+def test_a_state_saved_before_the_noise_was_measured_keeps_its_rule(saved, tmp_path):
+    # its uncharted points were those a spacing from every sample, whatever the noise
+    model, _ = saved
+    path = model.atlas_.save(tmp_path / "atlas.npz")
+    meta, arrays = read_state(path)
+    assert meta.pop("noise") > 0
+    old = AtlasReconstructor.from_state(meta, arrays)
+    assert "noise_" not in vars(old)
+    assert old._uncharted_reach() == uncharted_reach(old.decomposition_.spacing_)
+    same_mesh(old.remesh(), AtlasReconstructor.load(path).remesh())
 
 
 def test_a_loaded_atlas_keeps_the_saved_probe(saved):

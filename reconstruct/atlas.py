@@ -153,8 +153,8 @@ class AtlasReconstructor(BaseEstimator):
     ``watertight_``, ``euler_``, ``winding_consistent_``, ``timings_`` seconds per stage,
     ``votes_`` (c,) each chart's exterior vote (with a band of ``seal_`` voxels), ``shells_``
     (c,) charts joined as thin shells, ``thin_`` (c,) those of them charted on one face of a thin
-    part (`reconstruct.chart_sides`), ``noise_`` the charts' median residual RMS (what counts
-    as data the charts left out is beyond its noise: `chart_sides.uncharted_reach`), ``closed_``
+    part (`reconstruct.chart_sides`), ``noise_`` the charts' median residual RMS (data the charts
+    left out lies beyond twice it and a spacing: `chart_sides.uncharted_reach`), ``closed_``
     whether the cloud was joined as the boundary of a volume (then a mesh that is not
     watertight is warned about); after a `remesh`, ``remesh_counts_``: charts meshed, join
     samples moved, grid nodes evaluated, charts re-meshed in the worker process

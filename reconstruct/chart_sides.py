@@ -52,7 +52,10 @@ UNCHARTED_NOISE = 2.0
 #: already shells, up to 0.09), nor at seed 1 (figurine 0.049, mug 0.049 beside one small
 #: chart: `THIN_POINTS`).
 THIN_SHARE = 0.06
-#: Behind a sample: between these many voxels deep (the noise's near side is no evidence).
+#: Behind a sample: between these many voxels deep (the noise's near side is no evidence). An
+#: uncharted point lies beyond `uncharted_reach`, so where twice the noise exceeds about 1.6
+#: spacings (3.2 voxels at the default voxel, half a spacing) none lies here and no chart is
+#: found thin: at such noise (σ 1 %) close sheets merge anyway (bench.atlas --noise 0.01).
 THIN_DEPTH = (1.0, 3.0)
 #: ... and straight behind it: within this many voxels of its normal line (as `_FRONT` in
 #: `reconstruct.closed_grid` is straight in front). A thin part's far face lies under its
@@ -147,8 +150,9 @@ def uncharted_points(points, samples, spacing: float, tree: cKDTree | None = Non
 class UnchartedTracker:
     """`uncharted_points` of one cloud ``points`` (n, 3) for samples that change a little
     between calls (a re-mesh's join): given the samples that moved since the last call, only
-    the points within reach of one are looked up again. The same points as `uncharted_points`;
-    a torus 22k re-mesh that moves two samples: 1 ms instead of 7 ms."""
+    the points within reach of one are looked up again. The same points as `uncharted_points`
+    with ``reach`` (`uncharted_reach`; None: `UNCHARTED` ``spacing``); a torus 22k re-mesh that
+    moves two samples: 1 ms instead of 7 ms."""
 
     def __init__(self, points: np.ndarray, spacing: float, reach: float | None = None):
         self.points = points
@@ -207,11 +211,11 @@ def _crowded(far: np.ndarray, spacing: float) -> np.ndarray:
 
 
 def behind_share(chart_samples, chart_normals, points, spacing: float, voxel: float,
-                 far=None, tree: cKDTree | None = None):
-    """(c,) uncharted points (`uncharted_points` of ``points`` (n, 3); ``far`` (p, 3) and a
-    ``tree`` of the charts' samples, in order, if the caller has them) lying `THIN_DEPTH`
-    voxels straight behind (`THIN_LATERAL`) their nearest sample of each chart (against its
-    outward normal), per sample of the chart.
+                 far=None, tree: cKDTree | None = None, reach: float | None = None):
+    """(c,) uncharted points (`uncharted_points` of ``points`` (n, 3) with ``reach``; ``far``
+    (p, 3) and a ``tree`` of the charts' samples, in order, if the caller has them) lying
+    `THIN_DEPTH` voxels straight behind (`THIN_LATERAL`) their nearest sample of each chart
+    (against its outward normal), per sample of the chart.
     chart_samples, chart_normals : c arrays (m_i, 3)."""
     sizes = np.array([len(s) for s in chart_samples], float)
     filled = [i for i, s in enumerate(chart_samples) if len(s)]
@@ -221,7 +225,7 @@ def behind_share(chart_samples, chart_normals, points, spacing: float, voxel: fl
     facing = np.concatenate([chart_normals[i] for i in filled])
     owner = np.concatenate([np.full(len(chart_samples[i]), i) for i in filled])
     tree = cKDTree(every) if tree is None else tree
-    far = uncharted_points(points, every, spacing, tree) if far is None else far
+    far = uncharted_points(points, every, spacing, tree, reach) if far is None else far
     if len(far) == 0:
         return np.zeros(len(chart_samples))
     distance, nearest = tree.query(far)

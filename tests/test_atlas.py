@@ -160,7 +160,7 @@ def test_charts_fitted_in_two_processes_give_the_same_mesh():
     np.testing.assert_array_equal(one.mesh_.faces, two.mesh_.faces)
 
 
-def test_the_noise_tails_of_a_solid_are_not_data_left_out():
+def test_the_noise_tails_of_a_solid_are_not_data_left_out(tmp_path):
     # a sphere at a noise near its spacing (20 % of its points over a spacing from every
     # sample): its charts were joined as thin shells with walls inside the solid (8 of them);
     # the points the charts leave out are those beyond the noise too (`uncharted_reach`)
@@ -171,6 +171,11 @@ def test_the_noise_tails_of_a_solid_are_not_data_left_out():
     assert atlas.watertight_ and atlas.euler_ == 2
     radii = np.linalg.norm(atlas.mesh_.vertices, axis=1)
     assert radii.min() > 0.85  # no wall inside
+    reach = uncharted_reach(atlas.decomposition_.spacing_, atlas.noise_)
+    assert atlas._uncharted_tracker().reach == reach  # a re-mesh's join leaves out the same
+    loaded = AtlasReconstructor.load(atlas.save(tmp_path / "sphere.npz"))
+    assert loaded._uncharted_reach() == reach
+    np.testing.assert_array_equal(loaded.remesh(lam=2.0).vertices, atlas.remesh(lam=2.0).vertices)
 
 
 def test_uncharted_reach_is_the_spacing_or_twice_the_noise():

@@ -12,12 +12,12 @@ every target of issue 13 (closed 20k clouds at σ 0.5 %: Chamfer ≤ Poisson's, 
 ≤ 0.5, watertight with the object's Euler characteristic, ≤ 60 s, the scanned dragon all but
 its Euler characteristic; sheets, at σ 0.5 % and 0.2 %: F ≥ 0.95 and the plates never merged,
 i.e. the mid-plane between them outside the mesh; relief at σ 1 %: Chamfer ≤ Poisson's,
-denoise ≤ 0.6; the scanned hollow bust, a thin open shell: Chamfer ≤ Poisson's). With ``--seeds``,
-each seed's table and
-verdicts, then at how many seeds each target was met: the mug's Euler characteristic, for one,
-depends on how its handle's roots fall on the join's grid (20k, seeds 0-5: missed at one or two
-of six). ``--noise`` samples the objects at another σ (share of the diagonal; issue 13's test
-objects are at 0.5 % and 1 %): the targets are those of σ 0.5 %, reported for reference.
+denoise ≤ 0.6; the scanned hollow bust, a thin open shell: Chamfer ≤ Poisson's). With
+``--seeds``, each seed's table and verdicts, then at how many seeds each target was met: the
+mug's Euler characteristic, for one, depends on how its handle's roots fall on the join's grid
+(20k, seeds 0-5: missed at one or two of six). ``--noise`` samples the objects at another σ
+(share of the diagonal; issue 13's test objects are at 0.5 % and 1 %): the targets are those of
+σ 0.5 %, reported for reference.
 ``--atlas-points`` charts more of a denser cloud (the scanned dragon at ``--points 100000``:
 its detail needs more than the default 20,000).
 """
@@ -38,6 +38,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from bench.baselines import ball_pivoting, open3d_available, poisson  # noqa: E402
 from bench.scanned import SCANNED, ScannedUnavailable, scanned_mesh  # noqa: E402
+from capture.commands.reconstruct import points_limit  # noqa: E402
 from reconstruct.mesh_edges import border_loops  # noqa: E402
 from reconstruct.metrics import surface_report  # noqa: E402
 from reconstruct.pipeline import SurfaceReconstructor  # noqa: E402
@@ -196,8 +197,8 @@ def main() -> None:
     parser.add_argument("--noise", type=float,
                         help="σ of the objects' clouds, a share of the diagonal (default: "
                              "0.005, the sheets-fine 0.002, the relief 0.01 always)")
-    parser.add_argument("--atlas-points", type=lambda text: None if text == "all" else int(text),
-                        default=ATLAS_POINTS, metavar="N|all",
+    parser.add_argument("--atlas-points", type=points_limit, default=ATLAS_POINTS,
+                        metavar="N|all",
                         help="points an atlas charts of a denser cloud (--points above it), "
                              "drawn from all of them (scanstation reconstruct --max-points "
                              "all --atlas-points N)")

@@ -93,11 +93,11 @@ def add_parser(subparsers) -> None:
     from reconstruct.validation import ATLAS_POINTS
 
     parser.add_argument(
-        "--max-points", type=_max_points, default=MAX_POINTS, metavar="N|all",
+        "--max-points", type=points_limit, default=MAX_POINTS, metavar="N|all",
         help=f"fit one chart on a random N of a denser cloud's points (default {MAX_POINTS}; "
         "its mesh has about as many vertices), or on all")
     parser.add_argument(
-        "--atlas-points", type=_max_points, default=ATLAS_POINTS, metavar="N|all",
+        "--atlas-points", type=points_limit, default=ATLAS_POINTS, metavar="N|all",
         help=f"an atlas charts a random N of a denser cloud's points (default {ATLAS_POINTS}; "
         "at most --max-points), or all: more keep finer detail, in more time and memory, but "
         "make smooth objects noisier")
@@ -126,7 +126,8 @@ def _voxel(text: str) -> float:
     return value
 
 
-def _max_points(text: str):
+def points_limit(text: str):
+    """A ``--max-points``-like option's value: a whole number >= 100, or None for "all"."""
     import argparse
 
     from reconstruct.errors import InvalidInputError

@@ -10,7 +10,9 @@ processes: `reconstruct.chart_fit`), and accepts a chart only when it is faithfu
 leaves at most `UNEXPLAINED_LIMIT` of its points unexplained, does not fold over
 (`fold_share`) and does not run between two layers of its points (`residual_kurtosis`);
 otherwise the chart is split and fitted again (at most ``max_splits`` times
-along one line of descent).
+along one line of descent). A faithful chart whose residuals keep a shape its network could not
+hold (neighbouring points' residuals alike: `chart_fit.split_underfit`) is fitted again in two
+parts, kept when both are faithful.
 The accepted charts' meshes, trimmed to a partition of the cloud, oriented alike (along their
 overlaps, and by which side of each is outside: `reconstruct.chart_sides`) and joined by
 `reconstruct.join.implicit_mesh`, give ``mesh_``: when the charts enclose a volume, its

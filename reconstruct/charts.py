@@ -238,23 +238,21 @@ class ChartDecomposition(BaseEstimator):
 
     def chart(self, index: int) -> np.ndarray:
         """Indices (m,) of chart ``index``: its core and the ring within ``overlap`` spacings."""
-        core = self.cores_[index]
+        return self.members(self.cores_[index])
+
+    def members(self, core: np.ndarray) -> np.ndarray:
+        """Indices (m,) of the chart of ``core`` (point indices): it and the ring within
+        ``overlap`` spacings."""
         reach = self.overlap * self.spacing_
         distance = dijkstra(self.graph_.graph_, directed=False, indices=core, min_only=True,
                             limit=reach)
         return np.flatnonzero(np.isfinite(distance))
 
-    def split(self, index: int, parts: int = 2) -> list[int]:
-        """Split chart ``index``'s core in ``parts`` along the graph; returns the indices of
-        the new charts (the first replaces ``index``). A core that cannot be split keeps one."""
-        core = self.cores_[index]
-        sub = self.graph_.graph_[core][:, core]
-        n_pieces, piece = connected_components(sub, directed=False)
-        if n_pieces > 1:  # a core cut in pieces by the graph: the pieces are the split
-            cells = [core[piece == p] for p in range(n_pieces)]
-        else:
-            seeds = geodesic_seeds(self.graph_.graph_, core, parts, self.random_state)
-            cells = voronoi_cells(self.graph_.graph_, core, seeds)
+    def split(self, index: int, parts: int = 2, cells=None) -> list[int]:
+        """Split chart ``index``'s core in ``parts`` along the graph (or in ``cells``, as
+        `split_cells` gave them); returns the indices of the new charts (the first replaces
+        ``index``). A core that cannot be split keeps one."""
+        cells = self.split_cells(index, parts) if cells is None else cells
         self.cores_[index] = cells[0]
         new = [index]
         for cell in cells[1:]:
@@ -262,3 +260,14 @@ class ChartDecomposition(BaseEstimator):
             new.append(len(self.cores_) - 1)
         self._relabel(len(self.labels_))
         return new
+
+    def split_cells(self, index: int, parts: int = 2) -> list[np.ndarray]:
+        """The cores (arrays of point indices) `split` cuts chart ``index``'s in, without
+        cutting it: the pieces the graph leaves of it, else ``parts`` geodesic Voronoi cells."""
+        core = self.cores_[index]
+        sub = self.graph_.graph_[core][:, core]
+        n_pieces, piece = connected_components(sub, directed=False)
+        if n_pieces > 1:  # a core cut in pieces by the graph: the pieces are the split
+            return [core[piece == p] for p in range(n_pieces)]
+        seeds = geodesic_seeds(self.graph_.graph_, core, parts, self.random_state)
+        return voronoi_cells(self.graph_.graph_, core, seeds)

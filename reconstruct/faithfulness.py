@@ -178,6 +178,22 @@ def residual_kurtosis(mesh, points) -> float:
     return float(kurtosis(signed, fisher=False)) if np.ptp(signed) > 0 else 3.0
 
 
+def residual_structure(mesh, points, k: int = 6) -> tuple[float, float]:
+    """The variance of the signed residuals of ``points`` (n, 3) from ``mesh``, and the part of
+    it their k nearest neighbours share (their mean product, centred): noise is independent from
+    point to point and shares none; a shape the mesh leaves unfitted (a ridge that a network too
+    small for its chart smoothed over) is shared by the points beside it. (0, 0) under k + 2
+    points."""
+    points = np.asarray(points, dtype=np.float64)
+    if len(points) < k + 2 or len(mesh.vertices) == 0:
+        return 0.0, 0.0
+    residuals = signed_residuals(mesh, points)
+    residuals -= residuals.mean()
+    neighbours = cKDTree(points).query(points, k=k + 1)[1][:, 1:]
+    return (float(np.mean(residuals ** 2)),
+            float(np.mean(residuals[:, None] * residuals[neighbours])))
+
+
 def signed_residuals(mesh, points, workers: int = 1) -> np.ndarray:
     """(n,) signed distances of ``points`` (n, 3) from ``mesh`` along the normal at its nearest
     vertex (positive in front)."""

@@ -69,6 +69,20 @@ def test_split_keeps_the_tiling():
     assert np.all(charts.labels_[charts.cores_[new[1]]] == new[1])
 
 
+def test_split_cells_are_the_split_s_and_cut_nothing():
+    points = torus_cloud(2000)
+    charts = ChartDecomposition(chart_size=800).fit(points)
+    cores = [core.copy() for core in charts.cores_]
+    cells = charts.split_cells(0)
+    assert len(cells) == 2 and all(np.array_equal(a, b) for a, b in zip(cores, charts.cores_,
+                                                                             strict=True))
+    members = [charts.members(cell) for cell in cells]
+    new = charts.split(0, cells=cells)
+    for index, cell, chart in zip(new, cells, members, strict=True):
+        assert np.array_equal(charts.cores_[index], cell)
+        assert np.array_equal(charts.chart(index), chart)
+
+
 def test_a_cloud_in_crumbs_is_refused():
     rng = np.random.default_rng(0)
     crumbs = rng.uniform(-1, 1, (40, 3))

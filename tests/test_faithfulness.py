@@ -17,6 +17,7 @@ from reconstruct.faithfulness import (
     missed_region,
     neighbour_preservation,
     residual_kurtosis,
+    residual_structure,
     surface_planarity,
     unexplained_fraction,
     volume_warning,
@@ -166,6 +167,19 @@ def test_points_in_two_layers_about_a_mesh_are_told_from_noise():
     assert residual_kurtosis(mesh, one) > 2.6
     assert residual_kurtosis(mesh, two) < TWO_LAYER_KURTOSIS
     assert unexplained_fraction(mesh, two) == 0.0  # what the other measures cannot see
+
+
+def test_noise_shares_no_residual_with_its_neighbours_an_unfitted_ridge_does():
+    square = square_mesh()
+    mesh = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(square.vertices, square.faces, 0.05))
+    flat = flat_square(3000, sigma=0.01, seed=1)
+    variance, shared = residual_structure(mesh, flat)
+    assert variance == pytest.approx(1e-4, rel=0.1) and abs(shared) < 0.1 * variance
+    # ridges 0.5 wide and a noise width high, which a flat mesh leaves unfitted
+    ridged = flat + [0, 0, 0.01] * np.sin(2 * np.pi * flat[:, :1] / 0.5)
+    variance, shared = residual_structure(mesh, ridged)
+    assert shared > 0.3 * variance
+    assert residual_structure(mesh, flat[:5]) == (0.0, 0.0)
 
 
 def blob(n, seed=0):

@@ -1,0 +1,96 @@
+"""A chart that leaves a shape in its residuals is fitted again in two
+(reconstruct.chart_fit.split_underfit)."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import trimesh
+
+from reconstruct import chart_fit
+from reconstruct.chart_fit import split_underfit
+from reconstruct.charts import ChartDecomposition
+
+
+def plane(z=0.0):
+    """A flat mesh over [-1.2, 1.2]² at height z, fine enough for its nearest vertex's normal."""
+    square = trimesh.Trimesh([[-1.2, -1.2, z], [1.2, -1.2, z], [1.2, 1.2, z], [-1.2, 1.2, z]],
+                             [[0, 1, 2], [0, 2, 3]])
+    return trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(square.vertices, square.faces, 0.05))
+
+
+def ridged_square(n=6000, sigma=0.01, seed=0):
+    """A noisy square sheet, flat for x < 0 and ridged for x > 0.3 (ridges 0.25 apart and two
+    noise widths high)."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-1, 1, (n, 2))
+    ridge = np.where(xy[:, 0] > 0.3, 2 * sigma * np.sin(2 * np.pi * xy[:, 0] / 0.25), 0.0)
+    return np.column_stack([xy, ridge + rng.normal(0, sigma, n)])
+
+
+def fitted_flat(charts, points):
+    """Every chart 'fitted' with the flat plane: the ridged ones leave their ridges."""
+    return {index: (SimpleNamespace(mesh_=plane()), charts.chart(index))
+            for index in range(charts.n_charts_)}
+
+
+def test_the_charts_that_leave_a_ridge_are_split_the_flat_ones_kept():
+    points = ridged_square()
+    charts = ChartDecomposition(chart_size=1500).fit(points)
+    before = charts.n_charts_
+    ridged = {index for index in range(before)
+              if np.median(points[charts.cores_[index], 0]) > 0.5}
+    flat = {index for index in range(before)
+            if np.max(points[charts.chart(index), 0]) < 0.3}
+    assert ridged and flat
+    fitted = fitted_flat(charts, points)
+    asked = []
+
+    def fit(clouds):
+        asked.extend(clouds)
+        return [(SimpleNamespace(mesh_=plane(), parts=True), None) for _ in clouds]
+
+    n_split = split_underfit(charts, points, fitted, fit)
+    assert n_split >= len(ridged) and charts.n_charts_ == before + n_split
+    assert len(asked) == 2 * n_split
+    for index in ridged:  # split: its first part keeps its index, with the fit's result
+        assert getattr(fitted[index][0], "parts", False)
+        assert np.array_equal(fitted[index][1], charts.chart(index))
+    for index in flat:
+        assert not getattr(fitted[index][0], "parts", False)
+    assert set(fitted) == set(range(charts.n_charts_))
+    joined = np.concatenate(charts.cores_)
+    assert len(joined) == len(np.unique(joined))  # still a tiling
+
+
+def test_a_chart_whose_parts_would_not_be_faithful_is_kept_whole():
+    points = ridged_square()
+    charts = ChartDecomposition(chart_size=1500).fit(points)
+    before = [core.copy() for core in charts.cores_]
+    fitted = fitted_flat(charts, points)
+    kept = dict(fitted)
+
+    def fit(clouds):  # one part of every split folds, another fails to fit
+        return [(None, "fit failed") if i % 4 == 3 else
+                (SimpleNamespace(mesh_=plane()), "mesh folds over" if i % 2 else None)
+                for i in range(len(clouds))]
+
+    assert split_underfit(charts, points, fitted, fit) == 0
+    assert fitted == kept
+    assert all(np.array_equal(a, b) for a, b in zip(before, charts.cores_, strict=True))
+
+
+def test_a_chart_between_two_layers_of_points_is_not_split_for_them(monkeypatch):
+    """Points in two layers about a chart's mesh (a wall thinner than the noise, charted once)
+    share their residuals with their neighbours as a shape left unfitted does; a split cannot
+    fit them either (the layers are `reconstruct.chart_sides`' to join)."""
+    rng = np.random.default_rng(0)
+    flat = np.column_stack([rng.uniform(-1, 1, (6000, 2)), rng.normal(0, 0.01, 6000)])
+    charts = ChartDecomposition(chart_size=1500).fit(flat)  # (the graph would part layers)
+    layered = flat + [0, 0, 0.03] * np.where(np.arange(6000) % 2, 1, -1)[:, None]
+
+    def fit(clouds):
+        return [(SimpleNamespace(mesh_=plane()), None) for _ in clouds]
+
+    assert split_underfit(charts, layered, fitted_flat(charts, layered), fit) == 0
+    monkeypatch.setattr(chart_fit, "LAYERED_KURTOSIS", 0.0)  # the layers alone: split
+    assert split_underfit(charts, layered, fitted_flat(charts, layered), fit) > 0

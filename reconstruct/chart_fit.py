@@ -268,6 +268,7 @@ def fit_every_chart(decomposition, points, workers, params: dict, hidden_layers,
     faults = []
     queue = [(index, 0) for index in range(decomposition.n_charts_)]
     first = None  # the first fitted chart: its searched layers and K are the others'
+    unfaithful = set()  # charts kept with a fault (split max_splits times): said, not split
     while queue:
         # until one chart has searched the layers, one at a time; then all waiting at once
         alone = first is None and hidden_layers is None
@@ -293,6 +294,7 @@ def fit_every_chart(decomposition, points, workers, params: dict, hidden_layers,
                 continue
             if fault is not None:
                 faults.append(f"chart {index} ({len(chart)} points): {fault}")
+                unfaithful.add(index)
             if first is None and reconstructor is not None:
                 first = reconstructor
             fitted[index] = (reconstructor, chart)
@@ -303,22 +305,24 @@ def fit_every_chart(decomposition, points, workers, params: dict, hidden_layers,
         if reuse_layers:
             chart_params["n_neighbors"], layers = first.n_neighbors_, first.hidden_layers_
         split = split_underfit(decomposition, points, fitted, lambda clouds: fit_charts(
-            clouds, workers, hidden_layers=layers, sized=reuse_layers, **chart_params))
+            clouds, workers, hidden_layers=layers, search=search, sized=reuse_layers,
+            **chart_params), skip=unfaithful)
         if split:
             log.info("%d charts left a shape in their residuals: split (%d charts, %.0f s so "
                      "far)", split, decomposition.n_charts_, time.perf_counter() - started)
     return fitted, faults
 
 
-def split_underfit(decomposition, points, fitted: dict, fit) -> int:
+def split_underfit(decomposition, points, fitted: dict, fit, skip=()) -> int:
     """Split each of the ``fitted`` charts ({index: (reconstructor or None, point
     indices)} of ``decomposition`` of ``points`` (m, 3)) whose residuals keep a shape and are
     not in two layers (`UNDERFIT_SHARE`) in the parts `split_cells` proposes, fitted by ``fit``
-    (a list of clouds → `fit_charts`' results), when every part is faithful. Updates ``fitted``
-    and the decomposition; returns how many charts were split."""
+    (a list of clouds → `fit_charts`' results), when every part is faithful; not the charts
+    ``skip`` (indices: those kept with a fault, which a warning names). Updates ``fitted`` and
+    the decomposition; returns how many charts were split."""
     proposals = []
     for index, (reconstructor, members) in fitted.items():
-        if (reconstructor is None
+        if (reconstructor is None or index in skip
                 or len(decomposition.cores_[index]) < 2 * decomposition.min_points):
             continue
         variance, shared = residual_structure(reconstructor.mesh_, points[members])

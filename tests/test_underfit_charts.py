@@ -54,6 +54,7 @@ def test_the_charts_that_leave_a_ridge_are_split_the_flat_ones_kept():
     assert len(asked) == 2 * n_split
     for index in ridged:  # split: its first part keeps its index, with the fit's result
         assert getattr(fitted[index][0], "parts", False)
+    for index in range(charts.n_charts_):  # every chart, split or not, with its own points
         assert np.array_equal(fitted[index][1], charts.chart(index))
     for index in flat:
         assert not getattr(fitted[index][0], "parts", False)
@@ -69,13 +70,16 @@ def test_a_chart_whose_parts_would_not_be_faithful_is_kept_whole():
     fitted = fitted_flat(charts, points)
     kept = dict(fitted)
 
+    asked = []
+
     def fit(clouds):  # one part of every split folds, another fails to fit
+        asked.extend(clouds)
         return [(None, "fit failed") if i % 4 == 3 else
                 (SimpleNamespace(mesh_=plane()), "mesh folds over" if i % 2 else None)
                 for i in range(len(clouds))]
 
     assert split_underfit(charts, points, fitted, fit) == 0
-    assert fitted == kept
+    assert asked and fitted == kept
     assert all(np.array_equal(a, b) for a, b in zip(before, charts.cores_, strict=True))
 
 
@@ -94,3 +98,41 @@ def test_a_chart_between_two_layers_of_points_is_not_split_for_them(monkeypatch)
     assert split_underfit(charts, layered, fitted_flat(charts, layered), fit) == 0
     monkeypatch.setattr(chart_fit, "LAYERED_KURTOSIS", 0.0)  # the layers alone: split
     assert split_underfit(charts, layered, fitted_flat(charts, layered), fit) > 0
+
+
+def test_a_chart_kept_with_a_fault_is_not_split_again():
+    """A chart split `max_splits` times and still unfaithful is kept and said: it is not split
+    past that, its warning naming a chart no longer there."""
+    points = ridged_square()
+    charts = ChartDecomposition(chart_size=1500).fit(points)
+    before = charts.n_charts_
+
+    def fit(clouds):
+        return [(SimpleNamespace(mesh_=plane()), None) for _ in clouds]
+
+    assert split_underfit(charts, points, fitted_flat(charts, points), fit,
+                          skip=set(range(before))) == 0
+    assert charts.n_charts_ == before
+
+
+def test_an_atlas_s_fit_splits_its_underfit_charts_with_its_own_parameters(monkeypatch):
+    points = ridged_square()
+    charts = ChartDecomposition(chart_size=1500).fit(points)
+    before = charts.n_charts_
+    calls = []
+
+    def fit_charts(clouds, workers=None, embedded=None, **params):
+        calls.append(params)
+        return [(SimpleNamespace(mesh_=plane(), hidden_layers_=(6, 3), n_neighbors_=9), None)
+                for _ in clouds]
+
+    monkeypatch.setattr(chart_fit, "fit_charts", fit_charts)
+    search = {"max_layers": 3, "max_neurons": 7}
+    fitted, faults = chart_fit.fit_every_chart(
+        charts, points, None, dict(lam=1.0, depth=2, random_state=0, n_neighbors=None), None,
+        True, 2, {}, 0.0, search=search)
+    assert charts.n_charts_ > before and set(fitted) == set(range(charts.n_charts_))
+    assert not faults
+    parts = calls[-1]  # the first chart alone, the others, then the parts of those split
+    assert len(calls) == 3 and parts["search"] == search and parts["sized"]
+    assert parts["hidden_layers"] == (6, 3) and parts["n_neighbors"] == 9

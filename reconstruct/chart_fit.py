@@ -269,20 +269,26 @@ def fit_every_chart(decomposition, points, workers, params: dict, hidden_layers,
     queue = [(index, 0) for index in range(decomposition.n_charts_)]
     first = None  # the first fitted chart: its searched layers and K are the others'
     unfaithful = set()  # charts kept with a fault (split max_splits times): said, not split
+
+    def fit(clouds, embedded=None):
+        """`fit_charts` of ``clouds`` as the charts are fitted now: with the first chart's
+        searched layers and K once there is one (``reuse_layers``), else searching."""
+        chart_params, layers = dict(params), hidden_layers
+        taken = first is not None and reuse_layers
+        if taken:
+            chart_params["n_neighbors"], layers = first.n_neighbors_, first.hidden_layers_
+        if chart_params["n_neighbors"] != params["n_neighbors"]:  # embedded with another K
+            embedded = None
+        return fit_charts(clouds, workers, embedded, hidden_layers=layers, search=search,
+                          sized=taken, **chart_params)
+
     while queue:
         # until one chart has searched the layers, one at a time; then all waiting at once
         alone = first is None and hidden_layers is None
         batch, queue = (queue[:1], queue[1:]) if alone else (queue, [])
         members = [decomposition.chart(index) for index, _ in batch]
-        chart_params, layers = dict(params), hidden_layers
-        if first is not None and reuse_layers:
-            chart_params["n_neighbors"], layers = first.n_neighbors_, first.hidden_layers_
         embedded = [ahead.pop(index, None) if not splits else None for index, splits in batch]
-        if chart_params["n_neighbors"] != params["n_neighbors"]:  # embedded with another K
-            embedded = None
-        results = fit_charts([points[m] for m in members], workers, embedded,
-                             hidden_layers=layers, search=search,
-                             sized=first is not None and reuse_layers, **chart_params)
+        results = fit([points[m] for m in members], embedded)
         for (index, splits), chart, (reconstructor, fault) in zip(
                 batch, members, results, strict=True):
             if fault is not None and splits < max_splits and len(
@@ -301,12 +307,7 @@ def fit_every_chart(decomposition, points, workers, params: dict, hidden_layers,
         log.info("%d of %d charts fitted (%.0f s so far)", len(fitted),
                  decomposition.n_charts_, time.perf_counter() - started)
     if first is not None:
-        chart_params, layers = dict(params), hidden_layers
-        if reuse_layers:
-            chart_params["n_neighbors"], layers = first.n_neighbors_, first.hidden_layers_
-        split = split_underfit(decomposition, points, fitted, lambda clouds: fit_charts(
-            clouds, workers, hidden_layers=layers, search=search, sized=reuse_layers,
-            **chart_params), skip=unfaithful)
+        split = split_underfit(decomposition, points, fitted, fit, skip=unfaithful)
         if split:
             log.info("%d charts left a shape in their residuals: split (%d charts, %.0f s so "
                      "far)", split, decomposition.n_charts_, time.perf_counter() - started)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from reconstruct.chart_fit import UNDERFIT_SHARE, UNDERFIT_Z
 from reconstruct.errors import ReconstructionWarning
 from reconstruct.faithfulness import (
     MISSED_LIMIT,
@@ -173,13 +174,26 @@ def test_noise_shares_no_residual_with_its_neighbours_an_unfitted_ridge_does():
     square = square_mesh()
     mesh = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(square.vertices, square.faces, 0.05))
     flat = flat_square(3000, sigma=0.01, seed=1)
-    variance, shared = residual_structure(mesh, flat)
+    variance, shared, z_along = residual_structure(mesh, flat)
     assert variance == pytest.approx(1e-4, rel=0.1) and abs(shared) < 0.1 * variance
+    assert z_along < UNDERFIT_Z
     # ridges 0.5 wide and a noise width high, which a flat mesh leaves unfitted
     ridged = flat + [0, 0, 0.01] * np.sin(2 * np.pi * flat[:, :1] / 0.5)
-    variance, shared = residual_structure(mesh, ridged)
-    assert shared > 0.3 * variance
-    assert residual_structure(mesh, flat[:5]) == (0.0, 0.0)
+    variance, shared, z_along = residual_structure(mesh, ridged)
+    assert shared > 0.3 * variance and z_along > 3 * UNDERFIT_Z
+    assert residual_structure(mesh, flat[:5]) == (0.0, 0.0, 0.0)
+
+
+def test_noise_near_the_spacing_is_shared_in_space_not_along_the_mesh():
+    # σ near three spacings (3000 points on the unit square: 0.018): points pushed out lie
+    # nearer each other, so their neighbours in space share their noise; along the mesh not
+    square = square_mesh()
+    mesh = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(square.vertices, square.faces, 0.05))
+    for seed in range(3):
+        variance, shared, z_along = residual_structure(
+            mesh, flat_square(3000, sigma=0.05, seed=seed))
+        assert shared > UNDERFIT_SHARE * variance
+        assert z_along < UNDERFIT_Z
 
 
 def blob(n, seed=0):

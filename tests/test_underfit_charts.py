@@ -96,7 +96,10 @@ def test_a_chart_between_two_layers_of_points_is_not_split_for_them(monkeypatch)
         return [(SimpleNamespace(mesh_=plane()), None) for _ in clouds]
 
     assert split_underfit(charts, layered, fitted_flat(charts, layered), fit) == 0
-    monkeypatch.setattr(chart_fit, "LAYERED_KURTOSIS", 0.0)  # the layers alone: split
+    monkeypatch.setattr(chart_fit, "LAYERED_KURTOSIS", 0.0)
+    # nor do neighbours along the mesh share them: the layers are mixed all along it
+    assert split_underfit(charts, layered, fitted_flat(charts, layered), fit) == 0
+    monkeypatch.setattr(chart_fit, "UNDERFIT_Z", -np.inf)  # the layers alone: split
     assert split_underfit(charts, layered, fitted_flat(charts, layered), fit) > 0
 
 

@@ -12,6 +12,7 @@ from .charts import ChartDecomposition
 from .closed_grid import ClosedSDF
 from .errors import NotFittedError
 from .join import ExteriorProbe
+from .residual_detail import ResidualDetail
 from .sdf_grid import SparseSDF
 
 ATLAS_FORMAT = "scanstation-atlas/1"
@@ -62,6 +63,13 @@ def atlas_state(atlas) -> tuple[dict, dict[str, np.ndarray]]:
                   chart_offsets=np.cumsum([0, *sizes]), signs=np.asarray(atlas.signs_),
                   shells=np.asarray(atlas.shells_, bool),
                   thin=np.asarray(atlas.thin_, bool))
+    details = atlas.__dict__.get("details_")
+    if details is not None:  # each chart's residuals, in chart_points' order
+        meta["detail"] = {"width": details[0].width if details else 0.0,
+                          "variance": [d.variance_ for d in details],
+                          "shape": [d.shape_ for d in details]}
+        arrays["detail_residuals"] = np.concatenate([np.zeros(0), *(d.residuals_
+                                                                    for d in details)])
     parts = atlas.__dict__.get("_parts")
     if parts is not None and len(parts) == len(atlas.charts_):
         arrays.update(parts_state(parts))
@@ -105,6 +113,9 @@ def atlas_from_state(cls, meta: dict, arrays: dict):
     atlas.closed_, atlas.seal_ = bool(meta["closed"]), float(meta["seal"])
     if meta.get("noise") is not None:  # (states saved before it was measured have none)
         atlas.noise_ = float(meta["noise"])
+    if "detail" in meta:  # (states saved before it was built join the charts as they are)
+        atlas.details_ = _details(meta["detail"], arrays["detail_residuals"], atlas.points_,
+                                  atlas.chart_points_, offsets)
     atlas.shells_ = np.asarray(arrays["shells"], bool)
     # states written before thin parts were told apart have none
     atlas.thin_ = (np.asarray(arrays["thin"], bool) if "thin" in arrays
@@ -122,3 +133,17 @@ def atlas_from_state(cls, meta: dict, arrays: dict):
         if parts is not None:
             atlas._parts = parts
     return atlas
+
+
+def _details(meta: dict, residuals, points, chart_points, offsets) -> list[ResidualDetail]:
+    """Each chart's `ResidualDetail` from a state's ``detail`` meta and residuals (flat, cut
+    at ``offsets`` as the charts' points)."""
+    residuals = np.asarray(residuals, float)
+    if not (len(residuals) == offsets[-1] and len(meta["variance"]) == len(meta["shape"])
+            == len(chart_points)):
+        raise ValueError("its charts' residuals and points do not agree")
+    return [ResidualDetail(float(meta["width"])).set_fitted(
+                points[members], residuals[a:b], variance, shape)
+            for members, a, b, variance, shape in zip(
+                chart_points, offsets[:-1], offsets[1:], meta["variance"], meta["shape"],
+                strict=True)]

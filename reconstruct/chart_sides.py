@@ -125,11 +125,10 @@ def uncharted_reach(spacing: float, noise: float | None = None) -> float:
     return max(UNCHARTED * spacing, 0.0 if noise is None else UNCHARTED_NOISE * noise)
 
 
-def chart_noise(meshes, chart_points, points) -> float:
-    """The charts' noise: the median over the charts of the RMS signed distance of their
-    points (``chart_points``: c index arrays into ``points`` (n, 3)) from their ``meshes``."""
-    rms = [np.sqrt(np.mean(signed_residuals(mesh, points[np.asarray(members)]) ** 2))
-           for mesh, members in zip(meshes, chart_points, strict=True) if len(members)]
+def chart_noise(residuals) -> float:
+    """The charts' noise: the median over the charts of the RMS of their points' signed
+    ``residuals`` (c arrays) from their meshes (`residual_detail.ResidualDetail`'s)."""
+    rms = [np.sqrt(np.mean(np.square(r))) for r in residuals if len(r)]
     return float(np.median(rms)) if rms else 0.0
 
 

@@ -177,8 +177,16 @@ def residual_kurtosis(mesh, points) -> float:
     points = _evenly(np.asarray(points, dtype=np.float64))
     if len(points) < 4 or len(mesh.vertices) == 0:
         return 3.0
-    signed = signed_residuals(mesh, points)
-    return float(kurtosis(signed, fisher=False)) if np.ptp(signed) > 0 else 3.0
+    return kurtosis_of(signed_residuals(mesh, points))
+
+
+def kurtosis_of(residuals) -> float:
+    """Kurtosis of ``residuals`` (n,): 3 for a normal distribution, and for fewer than 4 or
+    all equal (`residual_kurtosis`)."""
+    residuals = np.asarray(residuals, dtype=np.float64)
+    if len(residuals) < 4 or np.ptp(residuals) == 0:
+        return 3.0
+    return float(kurtosis(residuals, fisher=False))
 
 
 def residual_structure(mesh, points, k: int = 6,
@@ -201,11 +209,20 @@ def residual_structure(mesh, points, k: int = 6,
     if variance == 0:
         return 0.0, 0.0, 0.0
     neighbours = cKDTree(points).query(points, k=k + 1)[1][:, 1:]
-    feet = points - residuals[:, None] * normals
-    along = cKDTree(feet).query(feet, k=k_along + 1)[1][:, 1:]
-    shared_along = float(np.mean(residuals[:, None] * residuals[along])) / variance
+    along = shared_along(points, residuals, normals, k_along) / variance
     return (variance, float(np.mean(residuals[:, None] * residuals[neighbours])),
-            shared_along * np.sqrt(len(points) * k_along / 2))
+            along * np.sqrt(len(points) * k_along / 2))
+
+
+def shared_along(points, residuals, normals, k: int = ALONG_NEIGHBOURS) -> float:
+    """The mean product of the centred ``residuals`` (n,) of ``points`` (n, 3) with those of
+    their k nearest neighbours along the mesh: among the points' feet on it, moved back along
+    their mesh's unit ``normals`` (n, 3). 0 under k + 2 points."""
+    if len(points) < k + 2:
+        return 0.0
+    feet = points - residuals[:, None] * normals
+    along = cKDTree(feet).query(feet, k=k + 1)[1][:, 1:]
+    return float(np.mean(residuals[:, None] * residuals[along]))
 
 
 def signed_residuals(mesh, points, workers: int = 1, with_normals: bool = False):

@@ -51,6 +51,11 @@ def test_a_loaded_atlas_remeshes_to_the_same_mesh(saved):
     atlas = AtlasReconstructor.load(path)  # the atlas alone reads the same file
     np.testing.assert_array_equal(atlas.signs_, model.atlas_.signs_)
     assert atlas.noise_ == model.atlas_.noise_ > 0  # (what counts as data left out)
+    for before, after in zip(model.atlas_.details_, atlas.details_, strict=True):
+        np.testing.assert_array_equal(before.residuals_, after.residuals_)
+        np.testing.assert_array_equal(before.points_, after.points_)
+        assert (before.width, before.variance_, before.shape_) == (
+            after.width, after.variance_, after.shape_)
     for before, after in zip(model.atlas_.chart_points_, atlas.chart_points_, strict=True):
         np.testing.assert_array_equal(before, after)
     alone = AtlasReconstructor.load(model.atlas_.save(path.with_name("alone.npz")))
@@ -73,6 +78,33 @@ def test_a_state_saved_before_the_noise_was_measured_keeps_its_rule(saved, tmp_p
     assert "noise_" not in vars(old)
     assert old._uncharted_reach() == uncharted_reach(old.decomposition_.spacing_)
     same_mesh(old.remesh(), AtlasReconstructor.load(path).remesh())
+
+
+def test_a_state_saved_before_the_residual_detail_joins_its_charts_as_they_are(saved, tmp_path):
+    model, _ = saved
+    path = model.atlas_.save(tmp_path / "atlas.npz")
+    meta, arrays = read_state(path)
+    del meta["detail"], arrays["detail_residuals"]
+    old = AtlasReconstructor.from_state(meta, arrays)
+    assert "details_" not in vars(old)
+    parts = old._chart_parts()
+    for part, samples in zip(parts, old._detailed_samples(parts), strict=True):
+        assert samples is part.samples
+    assert old.remesh(lam=2.5).is_watertight
+    # (the sphere's charts hold their shape: a chart that smoothed one would move its samples)
+    new = AtlasReconstructor.load(path)
+    new.details_[0].shape_ = new.details_[0].variance_
+    parts = new._chart_parts()
+    moved = new._detailed_samples(parts)[0]
+    assert moved is not parts[0].samples and not np.array_equal(moved, parts[0].samples)
+
+
+def test_a_state_whose_residuals_do_not_fit_its_charts_is_refused(saved, tmp_path):
+    model, _ = saved
+    meta, arrays = read_state(model.atlas_.save(tmp_path / "atlas.npz"))
+    arrays["detail_residuals"] = arrays["detail_residuals"][:-1]
+    with pytest.raises(ValueError, match="residuals"):
+        AtlasReconstructor.from_state(meta, arrays)
 
 
 def test_a_loaded_atlas_keeps_the_saved_probe(saved):

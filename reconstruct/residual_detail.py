@@ -32,8 +32,6 @@ from .kdtree import PointTree
 #: spacings 0.317-0.319.
 DETAIL_NEIGHBOURS = 16
 DETAIL_WIDTH = 1.5
-
-
 #: Points farther from the chart's mesh than this many noise widths (the residuals' median
 #: absolute deviation, scaled to σ) are left out of its field: another surface's (a plate's
 #: other face round its rim), not a shape the network smoothed. Sheets at σ 0.2 %, 20k, seeds
@@ -70,12 +68,14 @@ class ResidualDetail:
         if not (len(points) and len(mesh.vertices)):
             return self.set_fitted(points, np.zeros(len(points)), 0.0, 0.0)
         residuals, normals = signed_residuals(mesh, points, with_normals=True)
-        inside = _inliers(residuals)
+        self.set_fitted(points, residuals, 0.0, 0.0)
+        inside = self.inliers_
         kept = residuals[inside]
         centred = kept - kept.mean()
-        shape = (0.0 if kurtosis_of(kept) < LAYERED_KURTOSIS
-                 else max(shared_along(points[inside], centred, normals[inside]), 0.0))
-        return self.set_fitted(points, residuals, float(np.mean(centred ** 2)), shape)
+        self.variance_ = float(np.mean(centred ** 2))
+        if kurtosis_of(kept) >= LAYERED_KURTOSIS:  # (two layers: no shape)
+            self.shape_ = max(shared_along(points[inside], centred, normals[inside]), 0.0)
+        return self
 
     def set_fitted(self, points, residuals, variance: float, shape: float) -> ResidualDetail:
         """Take a fitted field (a saved atlas's): the chart's ``points`` (m, 3), their

@@ -535,8 +535,11 @@ class AtlasReconstructor(BaseEstimator):
         kept = self.__dict__.setdefault("_detail_kept", {})
         held = kept.get((index, kind))
         if held is None or held[0] is not samples:
-            held = kept[index, kind] = (samples, details[index].moved(samples, normals))
-        return held[1]
+            detail = details[index]
+            offsets = detail.offsets(samples, known=None if held is None else held[:2])
+            held = kept[index, kind] = (samples, offsets,
+                                        detail.moved(samples, normals, offsets))
+        return held[2]
 
     def _chart_mesh(self, index: int) -> trimesh.Trimesh:
         """Chart ``index``'s mesh, meshed again if a re-mesh skipped it."""

@@ -106,3 +106,28 @@ def test_points_in_two_layers_are_no_shape_to_put_back(monkeypatch):
     assert ResidualDetail(width=0.04).fit(mesh, points).shape_ == 0.0
     monkeypatch.setattr(residual_detail, "LAYERED_KURTOSIS", 0.0)
     assert ResidualDetail(width=0.04).fit(mesh, points).shape_ > 0.5 * SIGMA ** 2
+
+
+def test_offsets_known_before_are_taken_bit_for_bit():
+    mesh, points = flat_mesh(), cloud(ridge)
+    detail = ResidualDetail(width=1.5 * 2 / np.sqrt(len(points))).fit(mesh, points)
+    samples, _ = probes()
+    before = detail.offsets(samples[:1500])
+    # a re-mesh: some vertices kept (in another order), some new
+    again = np.vstack([samples[1000:], samples[:400][::-1]])
+    known = detail.offsets(again, known=(samples[:1500], before))
+    np.testing.assert_array_equal(known, detail.offsets(again))
+    # a row that moved by one ulp is no longer known, and is found afresh
+    nudged = again.copy()
+    nudged[0, 0] = np.nextafter(nudged[0, 0], 1.0)
+    assert residual_detail.rows_among(samples[:1500], nudged)[0] == -1
+    np.testing.assert_array_equal(detail.offsets(nudged, known=(samples[:1500], before)),
+                                  detail.offsets(nudged))
+
+
+def test_rows_among_finds_each_row_or_none():
+    rows = np.array([[0.0, 1, 2], [3, 4, 5], [0, 1, 2.5]])
+    queries = np.array([[3.0, 4, 5], [0, 1, 2], [9, 9, 9], [0, 1, 2.5]])
+    np.testing.assert_array_equal(residual_detail.rows_among(rows, queries), [1, 0, -1, 2])
+    np.testing.assert_array_equal(residual_detail.rows_among(np.zeros((0, 3)), queries),
+                                  [-1] * 4)

@@ -99,7 +99,7 @@ class ResidualDetail:
         k = min(self.k, int(self.inliers_.sum()))
         if self.shape_ <= 0 or k == 0 or self.width <= 0 or len(positions) == 0:
             return np.zeros(len(positions))
-        if known is not None:
+        if known is not None and len(known[0]):
             found = rows_among(known[0], positions)
             offsets = np.asarray(known[1], dtype=np.float64)[np.maximum(found, 0)]
             new = found < 0

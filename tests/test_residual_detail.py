@@ -123,6 +123,9 @@ def test_offsets_known_before_are_taken_bit_for_bit():
     assert residual_detail.rows_among(samples[:1500], nudged)[0] == -1
     np.testing.assert_array_equal(detail.offsets(nudged, known=(samples[:1500], before)),
                                   detail.offsets(nudged))
+    # a part that had no vertices before
+    np.testing.assert_array_equal(detail.offsets(again, known=(samples[:0], before[:0])),
+                                  detail.offsets(again))
 
 
 def test_rows_among_finds_each_row_or_none():

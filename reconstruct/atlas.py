@@ -71,7 +71,12 @@ from .errors import (
     NotFittedError,
     ReconstructionWarning,
 )
-from .faithfulness import LAYERED_KURTOSIS, residual_kurtosis, volume_warning
+from .faithfulness import (
+    LAYERED_KURTOSIS,
+    residual_kurtosis,
+    sampled_kurtosis,
+    volume_warning,
+)
 from .io import one_line, read_state, write_state
 from .join import (
     ExteriorProbe,
@@ -453,7 +458,12 @@ class AtlasReconstructor(BaseEstimator):
 
     def _layered_charts(self) -> np.ndarray:
         """(c,) bool: the charts whose points lie in two layers about their mesh
-        (`faithfulness.LAYERED_KURTOSIS`)."""
+        (`faithfulness.LAYERED_KURTOSIS`), from the residuals their fields found at fit (an
+        atlas saved before them: found again)."""
+        details = self.__dict__.get("details_")
+        if details is not None:
+            return np.array([sampled_kurtosis(d.residuals_) < LAYERED_KURTOSIS
+                             for d in details])
         return np.array([residual_kurtosis(self._chart_mesh(i), self.points_[np.asarray(m)])
                          < LAYERED_KURTOSIS for i, m in enumerate(self.chart_points_)])
 

@@ -15,6 +15,7 @@ from capture.cli import main
 from reconstruct.atlas import AtlasReconstructor
 from reconstruct.chart_sides import uncharted_reach
 from reconstruct.errors import InvalidInputError
+from reconstruct.faithfulness import residual_kurtosis, sampled_kurtosis
 from reconstruct.io import read_state
 from reconstruct.pipeline import SurfaceReconstructor
 
@@ -241,3 +242,14 @@ def test_bad_atlas_join_options_are_refused(tmp_path, capsys, option, value):
 def test_bad_atlas_join_params_are_refused(params, message):
     with pytest.raises(InvalidInputError, match=message):
         SurfaceReconstructor(**params).fit(sphere_cloud())
+
+
+def test_the_layered_charts_are_found_from_the_fields_residuals():
+    atlas = AtlasReconstructor(random_state=0).fit(sphere_cloud())
+    for chart, members, detail in zip(atlas.charts_, atlas.chart_points_, atlas.details_,
+                                      strict=True):
+        assert sampled_kurtosis(detail.residuals_) == residual_kurtosis(
+            chart.mesh_, atlas.points_[np.asarray(members)])
+    found = atlas._layered_charts()
+    del atlas.details_  # (a state saved before the fields: from the meshes again)
+    np.testing.assert_array_equal(found, atlas._layered_charts())

@@ -97,3 +97,24 @@ def test_a_float32_grid_changed_in_place_is_marched_again():
     expected_vertices, expected_faces = whole(values, 1.0)
     np.testing.assert_array_equal(vertices, expected_vertices)
     np.testing.assert_array_equal(faces, expected_faces)
+
+
+def test_few_changes_far_apart_march_the_whole_grid():
+    """Two small dents at opposite corners change few nodes, but their box is most of the grid:
+    following the kept march there costs more than marching the crossed cells afresh."""
+    values = sphere()
+    march = KeptMarch()
+    march(values, 1.0)
+    apart = values.copy()
+    apart[1:4, 1:4, 1:4] += 3.0
+    apart[36:39, 40:43, 44:47] += 3.0
+    near = apart.copy()
+    near[10:12, 20:23, 4:7] -= 2.0
+    followed = []
+    for grid in (apart, near, near + np.where(np.arange(48) == 6, 0.25, 0.0)):
+        vertices, faces = march(grid, 1.0)
+        expected_vertices, expected_faces = whole(grid, 1.0)
+        np.testing.assert_array_equal(vertices, expected_vertices)
+        np.testing.assert_array_equal(faces, expected_faces)
+        followed.append(not march.whole_)
+    assert followed == [False, False, True]  # (the second keeps what the third follows)

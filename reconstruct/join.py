@@ -44,6 +44,7 @@ from .closed_grid import ClosedSDF
 from .errors import InvalidInputError
 from .grid_steps import exterior_of, farther_than, grid_box, occupancy
 from .kdtree import PointTree
+from .marching import marched
 from .mesh_edges import (
     close_small_holes,
     edge_runs,
@@ -408,8 +409,6 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
     the shells of thin parts facing data left out of the charts (`reconstruct.atlas`; the far
     face matters: the void in front of it is a gap between sheets a few voxels wide, not a
     crack to seal; the near face faces the outside anyway)."""
-    from skimage.measure import marching_cubes  # scikit-image: only on the joining path
-
     samples = np.asarray(samples, float)
     normals = np.asarray(normals, float)
     kind = ClosedSDF if closed else SparseSDF
@@ -433,9 +432,7 @@ def implicit_mesh(samples, normals, voxel: float, band: float = 3.0, trim: float
             sdf.fit(samples, normals, kept_open, uncharted)
         vertices, faces = sdf.march()  # marched again only round what changed
     else:
-        vertices, faces, _, _ = marching_cubes(sdf.values_, level=0.0, spacing=(voxel,) * 3,
-                                               mask=sdf.mask_, gradient_direction="ascent",
-                                               allow_degenerate=False)
+        vertices, faces = marched(sdf.values_, voxel, sdf.mask_)
     values, origin = sdf.values_, sdf.origin_
     # one vertex per grid edge the surface crosses: two coincide (trimesh's process merges them)
     # only at a node whose value is zero to rounding (skipping it: 12 ms of a 45k-vertex join),
@@ -503,9 +500,14 @@ def kept_mesh(grid, trim: float = 1.5, min_share: float = 0.005, hole: float = 1
 
 def kept_topology(grid, faces) -> tuple[bool, bool, int] | None:
     """`mesh_edges.topology` of ``faces`` (f, 3) if they are those of the mesh ``grid`` keeps
-    (`kept_mesh`) and it knows it; else None."""
+    (`kept_mesh`), or those turned over (an open atlas turns its mesh to the side its cloud
+    was seen from: the relief's re-mesh found its topology again, 7 ms), and it knows it;
+    else None."""
     known = getattr(grid, "topology_", None)
-    if known is None or not np.array_equal(grid.mesh_.faces, faces):
+    if known is None:
+        return None
+    kept, faces = np.asarray(grid.mesh_.faces), np.asarray(faces)
+    if not (np.array_equal(kept, faces) or np.array_equal(kept[:, ::-1], faces)):
         return None
     return known
 

@@ -18,7 +18,7 @@ When a march cannot be followed so (a vertex rounded onto a node, which several 
 face in the side of a cell, which two cells share; two corners of a face rounded together,
 which skimage merges), or its changes spread over much of the grid (`_MOST`, `_MOST_BOX`), the
 whole grid is marched: only the cells the level crosses (`_crossed`), scaled here unless a face
-may be degenerate (`_marched_whole`), which gives skimage's vertices and faces at about half the
+may be degenerate (`marched`), which gives skimage's vertices and faces at about half the
 time (sheets 22k, 118,000 faces: 37 -> 20 ms).
 """
 
@@ -50,7 +50,7 @@ def _march(grid: np.ndarray, voxel: float | None = None, mask: np.ndarray | None
     else:
         vertices, faces, _, _ = marching_cubes(grid, level=0.0, spacing=(voxel,) * 3,
                                                gradient_direction="ascent",
-                                               allow_degenerate=False)
+                                               allow_degenerate=False, mask=mask)
     return vertices, faces.astype(np.int64)
 
 
@@ -73,17 +73,23 @@ def _crossed(grid: np.ndarray) -> np.ndarray | None:
     return mask
 
 
-def _marched_whole(grid: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
-    """``_march(grid, voxel)``, the same vertices and faces, from a raw march of the crossed
-    cells (`_crossed`) scaled here: skimage's merging of degenerate faces walks every face in
-    Python-speed loops and, when there are none, changes nothing but the vertices' type
-    (sheets 22k, 118,000 faces: 37 ms for skimage's, 20 here). Merged by skimage when one
-    may be degenerate."""
-    raw, faces = _march(grid, mask=_crossed(grid))
+def marched(grid: np.ndarray, voxel: float, mask: np.ndarray | None = None) -> tuple:
+    """``skimage.measure.marching_cubes(grid, 0.0, spacing=(voxel,) * 3, mask=mask,
+    gradient_direction="ascent", allow_degenerate=False)``'s vertices (v, 3) float32 and faces
+    (f, 3) int64, from a raw march of the cells the level crosses (`_crossed`) scaled here:
+    skimage's merging of degenerate faces walks every face in Python-speed loops and, when
+    there are none, changes nothing but the vertices' type (sheets 22k, 118,000 faces: 37 ms
+    for skimage's, 20 here). skimage's own when a node lies on the level or a face may be
+    degenerate."""
+    grid = np.ascontiguousarray(grid, np.float32)  # what skimage marches (its sides of 0)
+    crossed = _crossed(grid)
+    if crossed is None:
+        return _march(grid, voxel, mask)
+    raw, faces = _march(grid, mask=crossed if mask is None else crossed & mask)
     vertices = _scaled(raw, voxel)
     close = _near_nodes(raw, grid.shape)[faces].any(axis=1)
-    if _degenerate(vertices, faces[close]):
-        return _march(grid, voxel)
+    if not _off_nodes(raw) or _degenerate(vertices, faces[close]):
+        return _march(grid, voxel, mask)
     return vertices, faces
 
 
@@ -116,7 +122,7 @@ class KeptMarch:
         # next call likely the same, so only the grid is kept, to count its changes (the
         # crossed cells marched alone, 20 ms; with what a march to follow keeps, 40-55 ms)
         self._kept = {"grid": grid, "voxel": voxel}
-        return _marched_whole(grid, voxel)
+        return marched(grid, voxel)
 
     def _whole(self, grid, voxel):
         raw, faces = _march(grid, mask=_crossed(grid))
@@ -227,6 +233,14 @@ def _near_nodes(raw: np.ndarray, shape) -> np.ndarray:
     margin = 5 * 2.0**-23 * max(shape)
     part = raw - np.floor(raw)
     return np.any((part > 0) & ((part < margin) | (part > 1 - margin)), axis=1)
+
+
+def _off_nodes(raw: np.ndarray) -> bool:
+    """Whether every vertex (v, 3; index units) lies inside its grid edge (one fractional
+    coordinate) or cell (three): none rounded onto a node or a cell's side, where vertices of
+    several edges may coincide."""
+    count = np.count_nonzero(raw != np.floor(raw), axis=1)
+    return bool(np.all((count == 1) | (count == 3)))
 
 
 def _degenerate(vertices: np.ndarray, faces: np.ndarray) -> bool:

@@ -11,6 +11,7 @@ from reconstruct.join import (
     exterior_votes,
     faces_seen_side,
     implicit_mesh,
+    kept_topology,
     stretched_samples,
     thin_shell,
 )
@@ -22,6 +23,7 @@ from reconstruct.mesh_edges import (
     topology,
     turn_faces,
 )
+from reconstruct.sdf_grid import SparseSDF
 
 
 def tube_samples(gap: float = 0.0, n: int = 6000, seed: int = 0):
@@ -355,3 +357,16 @@ def test_an_open_join_whose_faces_are_all_far_from_the_data_is_empty():
     normals = np.tile([0.0, 0.0, 1.0], (len(xy), 1))
     mesh = implicit_mesh(samples, normals, voxel=0.05, data=np.full((5, 3), 50.0))
     assert len(mesh.faces) == 0
+
+
+def test_a_grid_knows_the_topology_of_its_mesh_turned_over_and_no_other():
+    rng = np.random.default_rng(2)
+    xy = rng.random((3000, 2))
+    samples = np.c_[xy, 0.1 * np.sin(4 * xy[:, 0])]
+    normals = np.tile([0.0, 0.0, 1.0], (len(xy), 1))
+    grid = SparseSDF(0.04)
+    mesh = implicit_mesh(samples, normals, voxel=0.04, grid=grid)
+    faces = np.asarray(mesh.faces)
+    assert kept_topology(grid, faces) == topology(faces)
+    assert kept_topology(grid, faces[:, ::-1]) == topology(faces[:, ::-1])  # turned over
+    assert kept_topology(grid, faces[1:]) is None

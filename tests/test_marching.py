@@ -4,7 +4,7 @@
 import numpy as np
 from skimage.measure import marching_cubes
 
-from reconstruct.marching import KeptMarch
+from reconstruct.marching import KeptMarch, marched
 
 
 def whole(values, voxel):
@@ -118,3 +118,23 @@ def test_few_changes_far_apart_march_the_whole_grid():
         np.testing.assert_array_equal(faces, expected_faces)
         followed.append(not march.whole_)
     assert followed == [False, False, True]  # (the second keeps what the third follows)
+
+
+def test_marching_the_crossed_cells_is_skimages_march():
+    """`marched` scales a raw march of the cells the level crosses; skimage's own merges
+    degenerate faces, and takes a grid with values on the level."""
+    rng = np.random.default_rng(3)
+    z, y, x = np.meshgrid(*(np.arange(n) - n / 2 for n in (30, 34, 38)), indexing="ij")
+    rough = np.sqrt(x**2 + y**2 + z**2) - 11.3 + rng.normal(0, 0.7, x.shape)
+    on_level = np.where(np.abs(rough) < 0.3, 0.0, rough)
+    nearly = np.where(np.abs(rough) < 0.3, np.copysign(1e-9, rough), rough)  # corners merged
+    mask = rng.random(rough.shape) < 0.9
+    for values in (rough, on_level, nearly, rough.astype(np.float32)):
+        for within in (None, mask):
+            vertices, faces = marched(values, 0.43, within)
+            expected, expected_faces, _, _ = marching_cubes(
+                values, 0.0, spacing=(0.43,) * 3, mask=within, gradient_direction="ascent",
+                allow_degenerate=False)
+            assert vertices.dtype == expected.dtype == np.float32
+            np.testing.assert_array_equal(vertices, expected)
+            np.testing.assert_array_equal(faces, expected_faces)

@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 
 from .faithfulness import signed_residuals
 from .join import ExteriorProbe, exterior_votes
-from .sdf_grid import QUERY_THREADS
+from .kdtree import QUERY_THREADS
 
 #: A chart faces out of the object when its exterior vote (`join.exterior_votes`) is this clear.
 VOTE_LIMIT = 0.5

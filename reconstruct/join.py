@@ -43,7 +43,7 @@ from scipy.spatial import cKDTree
 from .closed_grid import ClosedSDF
 from .errors import InvalidInputError
 from .grid_steps import exterior_of, farther_than, grid_box, occupancy
-from .kdtree import PointTree
+from .kdtree import QUERY_THREADS, PointTree
 from .marching import marched
 from .mesh_edges import (
     close_small_holes,
@@ -57,7 +57,7 @@ from .mesh_edges import (
     topology,
     turn_faces,
 )
-from .sdf_grid import QUERY_THREADS, SparseSDF
+from .sdf_grid import SparseSDF
 
 #: The revision of the join's method, part of the key of the mesh a grid keeps (and saves): an
 #: atlas saved by an earlier revision does not give its kept mesh back for the same samples (a
@@ -206,7 +206,11 @@ def _fill_faces(faces, sides, step, edge_step, vertices, kept, normals):
     # the edges with a kept end, once each, at the finest step of their faces: points at
     # t = 1/m ... (m − 1)/m along them
     edges = np.sort(np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
-    edges, inverse = np.unique(edges, axis=0, return_inverse=True)
+    # unique rows by one int64 key each (np.unique's rows, in the same order: 0.2 -> 0.05 ms
+    # a chart, 27 charts a scan's re-mesh)
+    keys, inverse = np.unique(edges[:, 0] * np.int64(len(vertices)) + edges[:, 1],
+                              return_inverse=True)
+    edges = np.column_stack(np.divmod(keys, np.int64(len(vertices))))
     steps = np.zeros(len(edges), np.int64)
     np.maximum.at(steps, inverse.ravel(), np.ceil(sides / edge_step).astype(np.int64).ravel())
     wanted = (steps >= 2) & is_kept[edges].any(axis=1)

@@ -16,6 +16,10 @@ import os
 import numpy as np
 from pykdtree.kdtree import KDTree
 
+#: Threads of the join's KD-tree queries (the machine has 2 cores; a join runs after its
+#: charts, on its own).
+QUERY_THREADS = 2
+
 
 class PointTree:
     """``query`` of scipy's cKDTree over ``data`` (n, d) (k nearest, an upper bound on the

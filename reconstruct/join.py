@@ -187,27 +187,32 @@ def stretched_samples(meshes, kept, normals, stretch: float, across=None) -> lis
     edge_step = np.where(corners & np.roll(corners, -1, axis=1), longest[:, None],
                          step[:, None])
     filled_faces = (squared > edge_step**2).any(axis=1) | (squared.max(axis=1) > (2 * step)**2)
-    empty = (np.zeros((0, 3)), np.zeros((0, 3)))
-    filled = [empty] * len(meshes)
-    for c in np.unique(chart[filled_faces]).tolist():
-        mine = filled_faces & (chart == c)
-        filled[c] = _fill_faces(faces[mine] - offsets[c], np.sqrt(squared[mine]), step[mine],
-                                edge_step[mine], meshes[c].vertices, kept[c], normals[c])
-    return filled
-
-
-def _fill_faces(faces, sides, step, edge_step, vertices, kept, normals):
-    """`stretched_samples` on one chart's ``faces`` (f, 3), each with a ``kept`` corner, their
-    ``sides`` (f, 3) and the steps their insides (f,) and edges (f, 3) are filled at."""
     at = np.zeros((len(vertices), 3))  # a corner not kept weighs nothing in a sample's normal
-    at[kept] = normals
-    is_kept = np.zeros(len(vertices), bool)
-    is_kept[kept] = True
+    if len(kept):
+        at[np.concatenate([np.asarray(k, np.int64) + offset
+                           for k, offset in zip(kept, offsets, strict=False)])] = (
+            np.concatenate([np.reshape(n, (-1, 3)) for n in normals]))
+    # every chart's faces at once (one chart at a time: 0.4 ms each, a scan's 54 charts 22 ms):
+    # its vertices' indices are its own, so are its edges, and its samples come in its order
+    points, turned, source = _fill_faces(faces[filled_faces], np.sqrt(squared[filled_faces]),
+                                         step[filled_faces], edge_step[filled_faces],
+                                         vertices, at, is_kept)
+    of_chart = np.searchsorted(offsets, source, side="right") - 1
+    order = np.argsort(of_chart, kind="stable")
+    ends = np.cumsum(np.bincount(of_chart, minlength=len(meshes)))[:-1]
+    return list(zip(np.split(points[order], ends), np.split(turned[order], ends), strict=True))
+
+
+def _fill_faces(faces, sides, step, edge_step, vertices, at, is_kept):
+    """`stretched_samples` on ``faces`` (f, 3), each with a kept corner (``is_kept`` (v,)
+    bool), their ``sides`` (f, 3) and the steps their insides (f,) and edges (f, 3) are filled
+    at; ``at`` (v, 3) the kept vertices' normals (zero elsewhere). Returns the samples (q, 3),
+    their unit normals (q, 3) and a vertex (q,) of the face or edge each lies on."""
     # the edges with a kept end, once each, at the finest step of their faces: points at
     # t = 1/m ... (m − 1)/m along them
     edges = np.sort(np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
-    # unique rows by one int64 key each (np.unique's rows, in the same order: 0.2 -> 0.05 ms
-    # a chart, 27 charts a scan's re-mesh)
+    # unique rows by one int64 key each (np.unique's rows, in the same order, four times as
+    # fast)
     keys, inverse = np.unique(edges[:, 0] * np.int64(len(vertices)) + edges[:, 1],
                               return_inverse=True)
     edges = np.column_stack(np.divmod(keys, np.int64(len(vertices))))
@@ -234,7 +239,7 @@ def _fill_faces(faces, sides, step, edge_step, vertices, kept, normals):
     turned = np.concatenate([np.einsum("pk,pkd->pd", w, at[m])
                              for w, m in zip(weights, members, strict=True)])
     turned /= np.maximum(np.linalg.norm(turned, axis=1, keepdims=True), 1e-300)
-    return points, turned
+    return points, turned, np.concatenate([m[:, 0] for m in members])
 
 
 def orient_charts(meshes, charts, points) -> np.ndarray:

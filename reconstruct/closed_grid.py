@@ -41,10 +41,9 @@ from .grid_steps import (
     squared_distance,
     voter_sides,
 )
-from .kdtree import PointTree
+from .kdtree import QUERY_THREADS, PointTree
 from .marching import KeptMarch
 from .sdf_grid import (
-    QUERY_THREADS,
     changed_rows,
     imls,
     kept_mesh_arrays,

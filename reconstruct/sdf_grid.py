@@ -30,6 +30,7 @@ IMLS_NEIGHBOURS = 8
 #: Gaussian width of the IMLS weights, in voxels.
 IMLS_WIDTH = 1.5
 
+
 def union(arrays) -> np.ndarray:
     """The distinct values of integer ``arrays``, ascending: np.unique of their concatenation,
     by a merge sort, which takes arrays that come ascending as sorted runs (37,000 flat

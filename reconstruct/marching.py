@@ -82,15 +82,27 @@ def marched(grid: np.ndarray, voxel: float, mask: np.ndarray | None = None) -> t
     sheets' 22k, 118,000 faces, 31 / 21 ms; the hook's, mug's and figurine's 26-30 / 19-23 ms).
     skimage's own when a node lies on the level or a face may be degenerate."""
     grid = np.ascontiguousarray(grid, np.float32)  # what skimage marches (its sides of 0)
-    crossed = _crossed(grid)
+    crossed = _crossed_march(grid, voxel, mask)
     if crossed is None:
         return _march(grid, voxel, mask)
+    _, vertices, faces = crossed
+    return vertices, faces
+
+
+def _crossed_march(grid: np.ndarray, voxel: float, mask: np.ndarray | None = None):
+    """The raw march (index units) of the cells of float32 ``grid`` the level crosses (and
+    ``mask`` holds), its vertices scaled as skimage scales them, and its faces: (raw, vertices,
+    faces), exactly skimage's march of ``grid``; None when skimage would merge vertices or
+    count a node on the level (then only its own march is)."""
+    crossed = _crossed(grid)
+    if crossed is None:
+        return None
     raw, faces = _march(grid, mask=crossed if mask is None else crossed & mask)
     vertices = _scaled(raw, voxel)
     close = _near_nodes(raw, grid.shape)[faces].any(axis=1)
     if not _off_nodes(raw) or _degenerate(vertices, faces[close]):
-        return _march(grid, voxel, mask)
-    return vertices, faces
+        return None
+    return raw, vertices, faces
 
 
 class KeptMarch:
@@ -125,12 +137,11 @@ class KeptMarch:
         return marched(grid, voxel)
 
     def _whole(self, grid, voxel):
-        raw, faces = _march(grid, mask=_crossed(grid))
-        keys = _vertex_keys(raw, np.zeros(3, np.int64), grid.shape)
-        vertices = _scaled(raw, voxel)
-        close = _near_nodes(raw, grid.shape)[faces].any(axis=1)
-        if keys is None or _degenerate(vertices, faces[close]):
+        crossed = _crossed_march(grid, voxel)
+        if crossed is None:
             return _march(grid, voxel)  # as skimage merges such vertices
+        raw, vertices, faces = crossed
+        keys = _vertex_keys(raw, np.zeros(3, np.int64), grid.shape)  # (every one told apart)
         if np.array_equal(_placed(keys, grid), raw):
             cells = _face_cells(keys, faces, grid.shape)
             if cells is not None and np.all(cells[1:] >= cells[:-1]):
@@ -238,7 +249,7 @@ def _near_nodes(raw: np.ndarray, shape) -> np.ndarray:
 def _off_nodes(raw: np.ndarray) -> bool:
     """Whether every vertex (v, 3; index units) lies inside its grid edge (one fractional
     coordinate) or cell (three): none rounded onto a node or a cell's side, where vertices of
-    several edges may coincide."""
+    several edges may coincide (and `_vertex_keys` cannot tell them apart)."""
     count = np.count_nonzero(raw != np.floor(raw), axis=1)
     return bool(np.all((count == 1) | (count == 3)))
 

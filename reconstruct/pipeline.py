@@ -637,7 +637,7 @@ class SurfaceReconstructor(BaseEstimator):
         started = time.perf_counter()
         interpolants, fit_input = self._boundary_points()
         spline = BoundarySpline(lam=self.lam, variance=self.variance).fit(fit_input)
-        outline = self._extended(spline.polygon_)
+        outline = self._extended(spline.polygon_, fit_input)
         spacing = self.grid_spacing or default_spacing(outline, len(self.embedding_))
         grid = None if self.grid_spacing is None else lattice_grid(outline, spacing)
         if unchanged is not None and unchanged(outline, spacing, grid):
@@ -702,7 +702,9 @@ class SurfaceReconstructor(BaseEstimator):
         finally:
             self.set_params(**previous)
 
-    def _extended(self, polygon: np.ndarray) -> np.ndarray:
+    def _extended(self, polygon: np.ndarray, given: SplineInput) -> np.ndarray:
+        """The spline's ``polygon`` (p, 2) grown by `extend` spacings of the points along the
+        boundary of the interpolants ``given``."""
         depth = self.depth if self.boundary == "multidepth" else 1
         factor = {
             "auto": border_inset(depth) - border_inset(1),
@@ -710,10 +712,23 @@ class SurfaceReconstructor(BaseEstimator):
         }.get(self.extend, self.extend)
         if factor == 0:
             return polygon
+        return extend_outline(polygon, factor * self._border_spacing(given))
+
+    def _border_spacing(self, given: SplineInput) -> float:
+        """`outline.border_spacing` of the points along the loop of the interpolants ``given``,
+        kept for them: a property of the points, not of λ, so measured on the loop once
+        rather than on each λ's spline (1 ms of a chart's 4 ms re-mesh; the spline's differ
+        from it by 0–2 % at the median over the figurine's and dragon's charts at depth 2–3,
+        λ 0.5–3, within ±7 % for 90 % of them)."""
         cache = self.__dict__.setdefault("_boundary_cache", {})
-        if "tree" not in cache:
-            cache["tree"] = PointTree(self.embedding_)
-        return extend_outline(polygon, factor * border_spacing(polygon, cache["tree"]))
+        kept = cache.setdefault("border spacing", {})
+        key = (self.boundary, self.depth, self.n_corners)
+        if key not in kept or kept[key][0] is not given:
+            if "tree" not in cache:
+                cache["tree"] = PointTree(self.embedding_)
+            loop = np.vstack([given.loop, given.loop[:1]])
+            kept[key] = given, border_spacing(loop, cache["tree"])
+        return kept[key][1]
 
     def sample_boundaries(self, depths) -> None:
         """Sample the boundary at each of ``depths`` into the cache (`_boundary_points`), so a

@@ -37,16 +37,19 @@ def test_extend_outline_grows_by_the_distance_and_keeps_orientation():
 
 
 @pytest.mark.parametrize("depth", [1, 2])
-def test_the_calibrated_inset_restores_the_sampled_area(depth):
+@pytest.mark.parametrize("measured_on", ["spline", "interpolants"])
+def test_the_calibrated_inset_restores_the_sampled_area(depth, measured_on):
     # The constants were measured on squares, 5:1 rectangles and disks; a fresh seed on a disk
-    # must come out within about one standard deviation (0.15 spacing) of the true area.
+    # must come out within about one standard deviation (0.15 spacing) of the true area, with
+    # the spacing measured on the spline (as calibrated) or on the loop of its interpolants (as
+    # the pipeline measures it, once for every λ).
     rng = np.random.default_rng(11)
     r, a = np.sqrt(rng.uniform(size=6000)), rng.uniform(0, 2 * np.pi, 6000)
     uv = np.column_stack([r * np.cos(a), r * np.sin(a)])
-    spline = BoundarySpline(lam=1.0, variance="local").fit(
-        MultiDepthBoundary(depth=depth).fit(uv).points_
-    )
-    spacing = border_spacing(spline.polygon_, cKDTree(uv))
+    interpolants = MultiDepthBoundary(depth=depth).fit(uv).points_
+    spline = BoundarySpline(lam=1.0, variance="local").fit(interpolants)
+    loop = np.vstack([interpolants, interpolants[:1]])
+    spacing = border_spacing(spline.polygon_ if measured_on == "spline" else loop, cKDTree(uv))
     before = shapely.Polygon(spline.polygon_)
     after = shapely.Polygon(extend_outline(spline.polygon_, border_inset(depth) * spacing))
     tolerance = 0.15 * spacing * after.length
@@ -74,6 +77,25 @@ def test_reconstructor_extend_options_and_errors():
             model.remesh(extend=bad)
     model.remesh()  # the rejected values left the model as it was
     assert shapely.Polygon(model.outline_).area == pytest.approx(areas[1.5])
+
+
+def test_every_lambda_extends_its_spline_by_the_same_spacing():
+    # the points' spacing along the boundary is measured on the interpolants' loop, once: a
+    # new λ moves the spline, not the distance it is grown by
+    rng = np.random.default_rng(5)
+    uv = rng.uniform(-1, 1, size=(1200, 2))
+    points = np.column_stack([uv, 0.2 * uv[:, 1] ** 2 + rng.normal(0, 0.01, 1200)])
+    model = SurfaceReconstructor(random_state=0, max_neurons=3, max_layers=1, depth=2)
+    model.fit(points)
+    grown = []
+    for lam in (1.0, 2.0, 4.0):
+        model.remesh(lam=lam)
+        polygon, outline = model.spline_.polygon_, model.outline_
+        assert len(outline) == len(polygon)  # grown along the normals, not buffered
+        grown.append(np.median(np.hypot(*(outline - polygon).T)))
+    spacing = model._border_spacing(model._boundary_points()[1])
+    expected = (border_inset(2) - border_inset(1)) * spacing
+    assert grown == pytest.approx([expected] * 3, rel=1e-6)
 
 
 def test_extend_outline_falls_back_to_a_buffer_where_offsets_fold():

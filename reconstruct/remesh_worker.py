@@ -355,6 +355,7 @@ def _take(path: str) -> dict:
     for i, (meta, arrays) in sent["charts"].items():
         charts[i] = SurfaceReconstructor.from_state(meta, arrays)
         charts[i].up = None  # (as `atlas_state` loads them)
+        charts[i].prepare_remeshing()  # (here, not in the worker's first re-mesh)
     return {**sent, "charts": charts}
 
 

@@ -109,3 +109,21 @@ def test_extend_outline_falls_back_to_a_buffer_where_offsets_fold():
     assert shapely.Polygon(grown).area == pytest.approx(
         shapely.Polygon(notch).buffer(0.05, quad_segs=8).area, rel=1e-9
     )
+
+
+def test_a_loaded_model_prepared_for_remeshing_meshes_as_one_that_is_not():
+    rng = np.random.default_rng(8)
+    uv = rng.uniform(-1, 1, size=(1000, 2))
+    points = np.column_stack([uv, 0.3 * np.sin(2 * uv[:, 0]) + rng.normal(0, 0.01, 1000)])
+    model = SurfaceReconstructor(random_state=0, max_neurons=3, max_layers=1, depth=2)
+    model.fit(points)
+    model.sample_boundaries([1, 2, 3])
+    prepared, plain = (SurfaceReconstructor.from_state(*model.state()) for _ in range(2))
+    prepared.prepare_remeshing()
+    spacings = prepared._boundary_cache["border spacing"]
+    assert {key[1] for key in spacings} == {2, 3}  # depth 1 is not grown ("auto")
+    measured = dict(spacings)
+    for params in ({"lam": 2.0}, {"depth": 3}, {"lam": 0.5, "depth": 1}):
+        a, b = prepared.remesh(**params), plain.remesh(**params)
+        assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces)
+    assert all(spacings[key] is measured[key] for key in measured)  # not measured again

@@ -36,11 +36,14 @@ SHAPES = {
 
 @pytest.mark.parametrize("name", sorted(SHAPES))
 @pytest.mark.parametrize("n_points", [300, 5000])
-def test_mesh_covers_the_polygon_once_with_ccw_manifold_triangles(name, n_points):
+@pytest.mark.parametrize("lattice", [False, True])
+def test_mesh_covers_the_polygon_once_with_ccw_manifold_triangles(name, n_points, lattice):
+    # (the grid's squares are co-circular: qhull's joggled triangulation of the band must
+    # still give whole, non-degenerate triangles)
     polygon = _loop(SHAPES[name])
     boundary = polygon[:-1:6]
     spacing = default_spacing(polygon, n_points)
-    vertices, faces = mesh_inside(polygon, boundary, spacing)
+    vertices, faces = mesh_inside(polygon, boundary, spacing, lattice=lattice)
 
     areas = _areas(vertices, faces)
     assert (areas > 0).all(), "every triangle counter-clockwise and non-degenerate"

@@ -355,7 +355,10 @@ def _take(path: str) -> dict:
     for i, (meta, arrays) in sent["charts"].items():
         charts[i] = SurfaceReconstructor.from_state(meta, arrays)
         charts[i].up = None  # (as `atlas_state` loads them)
-        charts[i].prepare_remeshing()  # (here, not in the worker's first re-mesh)
+        try:  # here, not in the worker's first re-mesh
+            charts[i].prepare_remeshing()
+        except Exception as exc:  # noqa: BLE001 - its re-mesh says so, as it would have
+            log.debug("chart %d not prepared: %s", i, one_line(exc))
     return {**sent, "charts": charts}
 
 

@@ -146,3 +146,33 @@ def test_a_process_that_exits_after_one_remesh_leaves_no_file(saved):
                          check=True, timeout=120)
     paths = run.stdout.split()
     assert len(paths) == 2 and not any(os.path.exists(path) for path in paths), run.stdout
+
+
+def test_the_worker_takes_up_charts_prepared_and_one_it_cannot_prepare_as_it_is(
+        saved, tmp_path, monkeypatch):
+    import pickle
+
+    from reconstruct.pipeline import SurfaceReconstructor
+
+    atlas = AtlasReconstructor.load(saved)
+    charts = {i: chart.state() for i, chart in enumerate(atlas.charts_[:2])}
+    path = tmp_path / "charts"
+    path.write_bytes(pickle.dumps({"key": 1, "owners": None, "reach": 1.0, "charts": charts}))
+    prepare = SurfaceReconstructor.prepare_remeshing
+
+    def failing_once(chart):
+        if not prepared:
+            prepared.append(chart)
+            raise RuntimeError("a chart that cannot be prepared")
+        prepare(chart)
+    prepared = []
+    monkeypatch.setattr(SurfaceReconstructor, "prepare_remeshing", failing_once)
+    held = remesh_worker._take(str(path))
+    assert not path.exists() and sorted(held["charts"]) == [0, 1]
+    assert "spline" not in held["charts"][0]._boundary_cache  # as loaded
+    assert "spline" in held["charts"][1]._boundary_cache  # its depths' inputs, taken
+    for index, chart in held["charts"].items():  # both re-mesh as the atlas's own
+        mine = atlas.charts_[index]
+        chart.remesh(lam=2.0)
+        mine.remesh(lam=2.0)
+        assert np.array_equal(chart.mesh_.vertices, mine.mesh_.vertices)

@@ -27,6 +27,13 @@ VOTE_MARGIN = 1.0
 VOTE_NEIGHBOURS = 16
 
 
+def cell_reach(distance):
+    """Nodes from a cell (as `squared_distance` counts them from a True one) within which every
+    node within ``distance`` voxels (float or array) of a point in that cell lies: the
+    distance and the cell's diagonal, √3, and a hair so that rounding leaves none out."""
+    return distance + np.sqrt(3.0) + 1e-9
+
+
 def squared_distance(targets: np.ndarray, radius: float) -> np.ndarray:
     """(shape) unsigned ints: each node's squared Euclidean distance, in nodes, to the nearest
     True node of ``targets``, exact where it is at most ``radius``² and above it (not exact)

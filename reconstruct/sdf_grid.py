@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .grid_steps import squared_distance
+from .grid_steps import cell_reach, squared_distance
 from .kdtree import QUERY_THREADS, PointTree
 
 #: Samples whose tangent planes enter a node's distance (Kolluri's k).
@@ -269,12 +269,12 @@ class SparseSDF:
         cells = np.clip(cells, 0, self.shape_ - 1)
         marked[cells[:, 0], cells[:, 1], cells[:, 2]] = True
         slack = 2 * self._tolerance / self.voxel
-        reach = self._far / self.voxel + np.sqrt(3.0) + slack + 1e-9
+        reach = cell_reach(self._far / self.voxel + slack)
         squared = squared_distance(marked, reach)  # exact within reach
         nodes = np.flatnonzero(squared <= reach * reach)
         eighth = self._eighth.flat[nodes]
         within = np.where((eighth > 0) & (eighth < self._far), eighth, self._far)
-        limit = within / self.voxel + np.sqrt(3.0) + slack + 1e-9
+        limit = cell_reach(within / self.voxel + slack)
         close = squared.flat[nodes] <= limit * limit
         return nodes[close], within[close]
 

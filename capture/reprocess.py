@@ -162,6 +162,43 @@ def _sha256(data: bytes) -> str:
 
 
 # -- the task (runs on a worker) ------------------------------------------------------------------
+#: The replays' temporary folders: ``scanstation-reprocess-<pid>-…`` in the system's temporary
+#: folder. A worker killed mid-replay (SIGKILL, the OOM killer, a cluster's node taken away)
+#: cannot remove its own, a copy of the recording; the next replay on the machine removes those
+#: whose process is gone (CI's killed-worker test left one at each run).
+TEMP_PREFIX = "scanstation-reprocess-"
+
+
+def sweep_stale_folders(parent: Path | None = None) -> int:
+    """Remove the replays' temporary folders in ``parent`` (default: the system's temporary
+    folder) whose process is gone; returns how many. Only POSIX names a folder's process."""
+    if os.name != "posix":
+        return 0
+    parent = Path(tempfile.gettempdir()) if parent is None else Path(parent)
+    removed = 0
+    for folder in parent.glob(f"{TEMP_PREFIX}*-*"):
+        pid = folder.name[len(TEMP_PREFIX):].split("-", 1)[0]
+        if (not pid.isdigit() or _alive(int(pid)) or folder.is_symlink()
+                or not folder.is_dir()):
+            continue
+        shutil.rmtree(folder, ignore_errors=True)
+        removed += not folder.exists()
+    if removed:
+        log.info("removed %d temporary folder(s) of replays whose process was killed", removed)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` exists (one of another user's counts)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def reprocess_recording(segments: list[tuple[str, bytes]], overrides: dict,
                         source: str = "", target: str = "") -> dict:
     """Replay one recording into a temporary folder; its output files as bytes.
@@ -174,7 +211,8 @@ def reprocess_recording(segments: list[tuple[str, bytes]], overrides: dict,
     "cpu_seconds", "warnings"} when the recording cannot be replayed.
     """
     started, cpu = time.perf_counter(), time.process_time()
-    with tempfile.TemporaryDirectory(prefix="scanstation-reprocess-") as tmp:
+    sweep_stale_folders()
+    with tempfile.TemporaryDirectory(prefix=f"{TEMP_PREFIX}{os.getpid()}-") as tmp:
         src, out = Path(tmp) / "in", Path(tmp) / "out"
 
         def named(text: str) -> str:

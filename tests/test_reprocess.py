@@ -11,10 +11,12 @@ from scan_helpers import record
 
 from capture.reprocess import (
     STAMP,
+    TEMP_PREFIX,
     Job,
     ReprocessError,
     Reprocessor,
     find_recordings,
+    sweep_stale_folders,
     up_to_date,
     write_outputs,
 )
@@ -72,6 +74,25 @@ def test_fingerprint_follows_content_and_parameters(tmp_path):
     write_outputs(target, {"mesh.ply": b"new"}, {"format": "x"})
     assert sorted(p.name for p in target.iterdir()) == ["mesh.ply", STAMP]
     assert [p.name for p in target.parent.iterdir()] == [job.name]
+
+
+@pytest.mark.skipif(os.name != "posix", reason="a folder's process is named by its pid")
+def test_a_killed_replay_s_temporary_folder_is_removed_by_the_next(tmp_path):
+    # a worker killed mid-replay (SIGKILL: CI's killed-worker test) left its copy of the
+    # recording in the temporary folder, one per kill
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    stale = tmp_path / f"{TEMP_PREFIX}{gone.pid}-abc"
+    (stale / "in").mkdir(parents=True)
+    (stale / "in" / "recording.mcap").write_bytes(b"x" * 100)
+    live = tmp_path / f"{TEMP_PREFIX}{os.getpid()}-def"  # a replay under way: kept
+    unnamed = tmp_path / f"{TEMP_PREFIX}_k6ljt5o"  # no process named: not ours to judge
+    other = tmp_path / f"other-{gone.pid}-x"
+    for folder in (live, unnamed, other):
+        folder.mkdir()
+    assert sweep_stale_folders(tmp_path) == 1
+    assert not stale.exists() and live.is_dir() and unnamed.is_dir() and other.is_dir()
+    assert sweep_stale_folders(tmp_path) == 0
 
 
 def test_a_missing_segment_fails_that_recording_only(tmp_path):

@@ -22,7 +22,9 @@ import hashlib
 import json
 import logging
 import os
+import re
 import shutil
+import socket
 import tempfile
 import time
 import uuid
@@ -162,22 +164,33 @@ def _sha256(data: bytes) -> str:
 
 
 # -- the task (runs on a worker) ------------------------------------------------------------------
-#: The replays' temporary folders: ``scanstation-reprocess-<pid>-…`` in the system's temporary
-#: folder. A worker killed mid-replay (SIGKILL, the OOM killer, a cluster's node taken away)
-#: cannot remove its own, a copy of the recording; the next replay on the machine removes those
-#: whose process is gone (CI's killed-worker test left one at each run).
+#: The replays' temporary folders: ``scanstation-reprocess-<host>-<pid>-…`` in the system's
+#: temporary folder. A worker killed mid-replay (SIGKILL, the OOM killer, a cluster's node taken
+#: away) cannot remove its own, a copy of the recording; the next replay on the machine removes
+#: those of its host whose process is gone (CI's killed-worker test left one at each run). The
+#: host in the name keeps a container sharing the folder, whose processes it cannot see, from
+#: taking another's for gone.
 TEMP_PREFIX = "scanstation-reprocess-"
 
 
+def replay_folder_prefix(pid: int | None = None) -> str:
+    """The name a replay's temporary folder starts with, for process ``pid`` (default: this
+    one) on this host."""
+    host = re.sub(r"[^A-Za-z0-9._]", "_", socket.gethostname()) or "host"
+    return f"{TEMP_PREFIX}{host}-{os.getpid() if pid is None else int(pid)}-"
+
+
 def sweep_stale_folders(parent: Path | None = None) -> int:
-    """Remove the replays' temporary folders in ``parent`` (default: the system's temporary
-    folder) whose process is gone; returns how many. Only POSIX names a folder's process."""
+    """Remove the replays' temporary folders of this host in ``parent`` (default: the system's
+    temporary folder) whose process is gone; returns how many. Only POSIX names a folder's
+    process."""
     if os.name != "posix":
         return 0
     parent = Path(tempfile.gettempdir()) if parent is None else Path(parent)
+    host = replay_folder_prefix(0)[:-len("0-")]  # "scanstation-reprocess-<host>-"
     removed = 0
-    for folder in parent.glob(f"{TEMP_PREFIX}*-*"):
-        pid = folder.name[len(TEMP_PREFIX):].split("-", 1)[0]
+    for folder in parent.glob(f"{host}*-*"):
+        pid = folder.name[len(host):].split("-", 1)[0]
         if (not pid.isdigit() or _alive(int(pid)) or folder.is_symlink()
                 or not folder.is_dir()):
             continue
@@ -212,7 +225,7 @@ def reprocess_recording(segments: list[tuple[str, bytes]], overrides: dict,
     """
     started, cpu = time.perf_counter(), time.process_time()
     sweep_stale_folders()
-    with tempfile.TemporaryDirectory(prefix=f"{TEMP_PREFIX}{os.getpid()}-") as tmp:
+    with tempfile.TemporaryDirectory(prefix=replay_folder_prefix()) as tmp:
         src, out = Path(tmp) / "in", Path(tmp) / "out"
 
         def named(text: str) -> str:

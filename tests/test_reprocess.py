@@ -16,6 +16,7 @@ from capture.reprocess import (
     ReprocessError,
     Reprocessor,
     find_recordings,
+    replay_folder_prefix,
     sweep_stale_folders,
     up_to_date,
     write_outputs,
@@ -82,16 +83,18 @@ def test_a_killed_replay_s_temporary_folder_is_removed_by_the_next(tmp_path):
     # recording in the temporary folder, one per kill
     gone = subprocess.Popen([sys.executable, "-c", "pass"])
     gone.wait()
-    stale = tmp_path / f"{TEMP_PREFIX}{gone.pid}-abc"
+    stale = tmp_path / f"{replay_folder_prefix(gone.pid)}abc"
     (stale / "in").mkdir(parents=True)
     (stale / "in" / "recording.mcap").write_bytes(b"x" * 100)
-    live = tmp_path / f"{TEMP_PREFIX}{os.getpid()}-def"  # a replay under way: kept
+    live = tmp_path / f"{replay_folder_prefix()}def"  # a replay under way: kept
     unnamed = tmp_path / f"{TEMP_PREFIX}_k6ljt5o"  # no process named: not ours to judge
+    elsewhere = tmp_path / f"{TEMP_PREFIX}another-host-{gone.pid}-x"  # another host's
     other = tmp_path / f"other-{gone.pid}-x"
-    for folder in (live, unnamed, other):
+    for folder in (live, unnamed, elsewhere, other):
         folder.mkdir()
     assert sweep_stale_folders(tmp_path) == 1
-    assert not stale.exists() and live.is_dir() and unnamed.is_dir() and other.is_dir()
+    assert not stale.exists()
+    assert all(f.is_dir() for f in (live, unnamed, elsewhere, other))
     assert sweep_stale_folders(tmp_path) == 0
 
 

@@ -4,24 +4,20 @@ re-meshing without retraining, and its saved state."""
 import dataclasses
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import trimesh
 from daemon_helpers import wait_until
-from surface_checks import hits_per_ray, side_rays, sphere_cloud
+from surface_checks import hits_per_ray, side_rays
 
-from capture.live import engine as engine_module
 from capture.live.atlas_fit import atlas_reason
 from capture.live.cloud import VoxelCloud
 from capture.live.engine import EngineError, IncrementalEngine, remesh
 from capture.live.patch_fit import fit_fresh, fit_warm
 from capture.plan import PlanError
-from reconstruct import atlas_remesh, remesh_worker
 from reconstruct.alignment import align_embedding
-from reconstruct.atlas import AtlasReconstructor
 from reconstruct.metrics import distance_to_surface, sample_surface
 
 
@@ -254,28 +250,6 @@ def test_the_final_mesh_of_a_cup_is_an_atlas_with_both_walls(cup_engine):
     radial = np.einsum("ij,ij->i", normal[outer, :2], centre[outer, :2])
     assert np.sum(engine.mesh.area_faces[outer] * (radial > 0)) > 0.9 * np.sum(
         engine.mesh.area_faces[outer])
-
-
-def test_the_final_atlas_goes_to_the_remeshing_worker_as_the_scan_ends(fast_params,
-                                                                      monkeypatch):
-    # a scan's user moves the λ slider at once: its first re-meshes were this process's alone
-    # until the worker, sent the charts by the first, took them up (a chair's 515-706 ms)
-    atlas = AtlasReconstructor(chart_size=400, random_state=0).fit(sphere_cloud(2000))
-    monkeypatch.setattr(engine_module, "fit_atlas", lambda points, params: (atlas, 1.0, []))
-    monkeypatch.setattr(remesh_worker, "_worker", None)  # this test's own
-    monkeypatch.setattr(atlas_remesh, "MIN_CHARTS", 2)
-    worker = remesh_worker.shared_worker()
-    published = []
-    with ThreadPoolExecutor(1) as executor:
-        engine = IncrementalEngine(fast_params, executor=executor, background=False,
-                                   on_mesh=lambda e, f: published.append(worker.sent(atlas)))
-        try:
-            assert engine._run_atlas(atlas.points_, 12, "asked", time.perf_counter())
-            assert engine.atlas is atlas and published == [False]  # sent after it is out
-            assert worker.sent(atlas)
-        finally:
-            engine.close()
-            worker.close()
 
 
 def test_a_replayed_atlas_scan_gives_the_same_mesh(cup_engine):

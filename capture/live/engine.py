@@ -284,7 +284,6 @@ class IncrementalEngine:
             "euler": int(atlas.euler_),
             "schedule": list(self.schedule_run),
         })
-        atlas.prepare_remeshing()  # the worker takes its charts up while the scan is written
         return True
 
     def _publish(self, mesh, points, figures: dict) -> None:

@@ -100,7 +100,7 @@ def test_an_atlas_fitted_without_workers_keeps_its_charts_here(saved, worker):
 
 
 def test_an_atlas_prepared_shares_its_first_remesh_with_the_worker(saved, worker):
-    # (a scan's user moves the λ slider at once: its first re-meshes were this process's
+    # (a program that re-meshes at once after a fit: its first re-meshes were this process's
     # alone until the worker, sent the charts by the first, took them up)
     beside, alone = AtlasReconstructor.load(saved), AtlasReconstructor.load(saved)
     alone.n_jobs = 1

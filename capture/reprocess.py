@@ -173,11 +173,15 @@ def _sha256(data: bytes) -> str:
 TEMP_PREFIX = "scanstation-reprocess-"
 
 
+def _host_prefix() -> str:
+    """``scanstation-reprocess-<host>-``: this host's replays' temporary folders' names begin so."""
+    return f"{TEMP_PREFIX}{re.sub(r'[^A-Za-z0-9._]', '_', socket.gethostname()) or 'host'}-"
+
+
 def replay_folder_prefix(pid: int | None = None) -> str:
     """The name a replay's temporary folder starts with, for process ``pid`` (default: this
     one) on this host."""
-    host = re.sub(r"[^A-Za-z0-9._]", "_", socket.gethostname()) or "host"
-    return f"{TEMP_PREFIX}{host}-{os.getpid() if pid is None else int(pid)}-"
+    return f"{_host_prefix()}{os.getpid() if pid is None else int(pid)}-"
 
 
 def sweep_stale_folders(parent: Path | None = None) -> int:
@@ -187,7 +191,7 @@ def sweep_stale_folders(parent: Path | None = None) -> int:
     if os.name != "posix":
         return 0
     parent = Path(tempfile.gettempdir()) if parent is None else Path(parent)
-    host = replay_folder_prefix(0)[:-len("0-")]  # "scanstation-reprocess-<host>-"
+    host = _host_prefix()
     removed = 0
     for folder in parent.glob(f"{host}*-*"):
         pid = folder.name[len(host):].split("-", 1)[0]

@@ -43,7 +43,7 @@ import numpy as np
 import trimesh
 from sklearn.base import BaseEstimator
 
-from .atlas_remesh import remesh_atlas, share_charts
+from .atlas_remesh import remesh_atlas
 from .atlas_state import ATLAS_FORMAT, atlas_from_state, atlas_state
 from .chart_fit import (
     BegunFit,
@@ -624,15 +624,6 @@ class AtlasReconstructor(BaseEstimator):
         if not hasattr(self, "charts_"):
             raise NotFittedError("fit() the atlas first")
         return remesh_atlas(self, params)
-
-    def prepare_remeshing(self) -> bool:
-        """Have the re-meshing worker take up the charts now, in the background, rather than
-        after the first `remesh` (`reconstruct.atlas_remesh.share_charts`): for a caller that
-        will re-mesh at once, as a scan's user moving the λ slider. Returns whether the worker
-        was sent them."""
-        if not hasattr(self, "charts_"):
-            raise NotFittedError("fit() the atlas first")
-        return share_charts(self)
 
     def _up_key(self):
         """What of ``up`` an open join's mesh depends on (`_face_seen_side`)."""

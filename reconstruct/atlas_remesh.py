@@ -55,28 +55,6 @@ def remesh_atlas(atlas, params: dict) -> trimesh.Trimesh:
             worker.release()
 
 
-def share_charts(atlas) -> bool:
-    """Send ``atlas``'s charts to the re-meshing worker now, as its first re-mesh would (it
-    takes them up in the background, about 1.5 s), so that the first re-mesh shares them too:
-    a simulated scan's chair, 56 charts, re-meshed at once after its fit, 515-706 ms each until
-    the worker held them, 380-400 ms after. For a caller that re-meshes at once: the worker costs
-    a process that ends with the charts unused otherwise (a one-shot scan of the hook: 29.2 ->
-    30.0 s, medians of 3), and a loaded atlas's first re-mesh, beside the worker taking them up,
-    took 622-862 ms against 612-690. Returns whether they were sent (or already were); False
-    when the atlas may not use the worker (`_worker_for`) or another re-mesh has it."""
-    worker = _worker_for(atlas)
-    if worker is None:
-        return False
-    try:
-        if "_owners" not in atlas.__dict__:  # (a re-mesh's join takes them so too)
-            atlas._owners = atlas._chart_owners()
-        if not worker.sent(atlas):
-            worker.send(atlas, atlas.reach * atlas.decomposition_.spacing_)
-        return worker.sent(atlas)
-    finally:
-        worker.release()
-
-
 def _remesh(atlas, params: dict, worker: ChartWorker | None) -> trimesh.Trimesh:
     started = time.perf_counter()
     charts = atlas.charts_

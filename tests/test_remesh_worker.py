@@ -16,7 +16,7 @@ from surface_checks import sphere_cloud
 
 from reconstruct import atlas_remesh, remesh_worker
 from reconstruct.atlas import AtlasReconstructor
-from reconstruct.errors import InvalidInputError, NotFittedError
+from reconstruct.errors import InvalidInputError
 
 
 @pytest.fixture(scope="module")
@@ -97,25 +97,6 @@ def test_an_atlas_fitted_without_workers_keeps_its_charts_here(saved, worker):
     remeshed(alone, {"lam": 2.0})
     remeshed(alone, {"lam": 0.7})
     assert not worker.sent(alone) and worker._process is None
-
-
-def test_an_atlas_prepared_shares_its_first_remesh_with_the_worker(saved, worker):
-    # (a program that re-meshes at once after a fit: its first re-meshes were this process's
-    # alone until the worker, sent the charts by the first, took them up)
-    beside, alone = AtlasReconstructor.load(saved), AtlasReconstructor.load(saved)
-    alone.n_jobs = 1
-    assert beside.prepare_remeshing() and worker.sent(beside)
-    assert not alone.prepare_remeshing() and not worker.sent(alone)  # may not use it
-    assert beside.prepare_remeshing()  # sent once: nothing more to do
-    held(worker, beside)
-    mesh, said = remeshed(beside, {"lam": 0.7})
-    expected, expected_said = remeshed(alone, {"lam": 0.7})
-    assert 0 < beside.remesh_counts_["charts in the worker"] < len(beside.charts_)
-    np.testing.assert_array_equal(mesh.vertices, expected.vertices)
-    np.testing.assert_array_equal(mesh.faces, expected.faces)
-    assert said == expected_said
-    with pytest.raises(NotFittedError):
-        AtlasReconstructor().prepare_remeshing()
 
 
 def test_a_refused_remesh_leaves_the_worker_in_step(saved, worker):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import numbers
 from typing import Any
 
 from .volume import Cylinder
@@ -202,6 +203,11 @@ class ScanPlan:
         unknown = sorted(set(data) - fields)
         if unknown:
             raise PlanError(f"unknown plan field(s): {', '.join(unknown)}")
+        angles = data.get("angles", ())
+        if not isinstance(angles, (list, tuple)) or not all(
+                isinstance(a, numbers.Real) and not isinstance(a, bool) for a in angles):
+            raise PlanError(f"angles must be a list of numbers (degrees), got "
+                            f"{json.dumps(angles, default=repr)[:60]}")
         try:
             if "volume" in data:
                 volume = data["volume"]

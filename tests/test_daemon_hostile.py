@@ -118,6 +118,20 @@ def test_the_allowlist_admits_what_the_operator_named():
             policy.check_url("turntable", url)
 
 
+@pytest.mark.parametrize("url, said", [
+    ("sim://camera?object=/etc/hostname", "request's `object` field"),
+    ("sim://camera?object=vase", "request's `object` field"),
+    ("sim://camera?width=40000&height=40000", "maximum of 4096 pixels"),
+    ("sim://camera?height=100000", "maximum of 4096 pixels"),
+])
+def test_a_simulated_camera_url_may_not_name_a_file_or_a_huge_image(client, url, said):
+    response = client.post("/api/v1/scans", json={"plan": capture_plan(1),
+                                                  "camera_url": url, "object": "vase"})
+    assert response.status_code == 422, response.text
+    assert said in _detail(response)
+    assert client.get("/api/v1/scans").json()["scans"] == []
+
+
 def test_object_files_only_from_the_operators_folder_and_errors_leak_no_host_paths(
         state_dir, tmp_path):
     folder = tmp_path / "objects"
@@ -201,7 +215,9 @@ def test_malformed_values_are_422_not_500(client):
     scans = "/api/v1/scans"
     for plan in ({"angles": [0], "volume": "abc"}, {"angles": [0], "volume": [1, "x", 3]},
                  {"angles": [0], "volume": {"radius_mm": None}},
-                 {"reconstruction": {"lam": "x"}}, {"angles": ["a"]}, {"angles": 5}):
+                 {"reconstruction": {"lam": "x"}}, {"angles": ["a"]}, {"angles": 5},
+                 {"angles": "0369"}, {"angles": "90"}, {"angles": {"0": 1, "45": 2}},
+                 {"angles": [True, False]}, {"angles": ["1e2", " 7 "]}, {"angles": [None]}):
         response = client.post(scans, json={"plan": plan})
         assert response.status_code == 422, (plan, response.text)
         _detail(response)

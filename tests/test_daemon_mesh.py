@@ -201,3 +201,47 @@ def test_a_refine_that_fails_is_422_with_the_cause_and_keeps_the_mesh(finished):
     assert client.get(f"/api/v1/scans/{scan_id}/mesh").content == mesh
     again = client.post(f"/api/v1/scans/{scan_id}/refine", json={"lam": 4.0})
     assert again.status_code == 200, again.text  # the refiner is still usable
+
+
+def test_a_damaged_saved_reconstruction_is_409_saying_so(finished, tmp_path):
+    import shutil
+
+    from capture.daemon.errors import Conflict
+    from capture.daemon.refine import MeshRefiner
+
+    _, scan, state_dir = finished
+    folder = shutil.copytree(state_dir / "scans" / scan["id"], tmp_path / "scan")
+    saved = sorted((folder / "engine").glob("*.npz"))
+    assert saved
+    saved[0].write_bytes(saved[0].read_bytes()[:1000])  # torn
+    with pytest.raises(Conflict, match="damaged or of another version: re-process"):
+        MeshRefiner().remesh("copy", folder, 2.0, None)
+    meta = json.loads((folder / "engine" / "engine.json").read_text())
+    meta["params"]["renamed_in_a_later_version"] = 1
+    (folder / "engine" / "engine.json").write_text(json.dumps(meta))
+    with pytest.raises(Conflict, match="damaged or of another version"):
+        MeshRefiner().remesh("copy2", folder, 2.0, None)
+
+
+def test_a_scan_folder_keeps_only_the_newest_refined_meshes(finished, tmp_path):
+    import shutil
+
+    from capture.daemon.refine import KEEP_REFINED, MeshRefiner
+
+    _, scan, state_dir = finished
+    folder = shutil.copytree(state_dir / "scans" / scan["id"], tmp_path / "scan")
+    refiner = MeshRefiner()
+    names = [refiner.remesh("copy", folder, lam, None).file
+             for lam in np.linspace(2.0, 6.0, KEEP_REFINED + 3)]
+    left = sorted(path.name for path in folder.glob("mesh-lam*-depth*.ply"))
+    assert left == sorted(names[-KEEP_REFINED:])
+    assert (folder / "mesh.ply").exists()
+
+
+@pytest.mark.parametrize("body", [{"lam": True}, {"lam": "2"}, {"depth": True}, {"depth": "3"},
+                                  {"depth": 2.5}])
+def test_a_refine_takes_numbers_only(finished, body):
+    client, scan, _ = finished
+    answer = client.post(f"/api/v1/scans/{scan['id']}/refine", json=body)
+    assert answer.status_code == 422, answer.text
+    assert next(iter(body)) in answer.text

@@ -116,3 +116,29 @@ def test_threads_update_one_store_safely(store):
 ])
 def test_device_keys_that_may_name_one_device(a, b, overlap):
     assert devices_overlap(a, b) is overlap
+
+
+@pytest.mark.parametrize("a, b", [
+    ("grbl://x?port=/dev/ttyUSB0", "grbl:///dev/ttyUSB0"),  # port= is what the driver opens
+    ("socket://127.0.0.1:4000", "socket://localhost:4000"),
+    ("grbl://?port=socket://localhost:4000", "socket://127.0.0.1:4000?timeout=2"),
+    ("grbl://COM3", "grbl://?port=com3"),
+])
+def test_two_urls_of_one_turntable_hold_one_device(a, b):
+    from capture.daemon.schemas import device_keys
+
+    (key_a,), (key_b,) = device_keys(None, a), device_keys(None, b)
+    assert devices_overlap(key_a, key_b), (key_a, key_b)
+
+
+def test_a_serial_port_is_held_by_its_real_path_and_ports_stay_apart(tmp_path):
+    from capture.daemon.schemas import device_keys
+
+    port = tmp_path / "ttyACM0"
+    port.touch()
+    (tmp_path / "by-id").symlink_to(port)
+    assert device_keys(None, f"grbl://{tmp_path}/by-id") == device_keys(None, f"grbl://{port}")
+    keys = [device_keys(None, url)[0] for url in ("grbl:///dev/ttyUSB0", "grbl:///dev/ttyUSB1",
+                                                   "socket://127.0.0.1:4000",
+                                                   "socket://127.0.0.1:4001")]
+    assert not any(devices_overlap(a, b) for i, a in enumerate(keys) for b in keys[i + 1:])

@@ -4,7 +4,8 @@ The operator decides, not the request. By default a scan may use serial ports (`
 ``COMn``), loopback addresses (a ser2net or simulator on this machine), OAK cameras by device id
 and simulated devices; any other address (``socket://10.0.0.5:23``, ``oak://192.168.1.44``,
 ``grbl:///srv/fifo``) must be allowed with ``scanstation serve --allow-device URL``. Device
-timeouts given in a URL are bounded (a request cannot make a scan wait on a device for hours).
+timeouts given in a URL are bounded (a request cannot make a scan wait on a device for hours),
+and so is a simulated camera's image.
 
 An ``object`` (the simulated camera's mesh) is a built-in name, or a file inside the folder the
 operator gave with ``--object-dir``; such a file is checked cheaply here (size, type, first
@@ -28,6 +29,9 @@ MAX_DEVICE_TIMEOUT_S = 30.0
 #: device URL parameters that are seconds to wait on a device
 TIMEOUT_PARAMETERS = ("timeout", "link_timeout", "poll")
 DEFAULT_MAX_OBJECT_BYTES = 256 << 20
+#: The largest side of a simulated camera's image a request may ask for (an OAK's largest
+#: sensor is 4056 × 3040)
+MAX_SIM_PIXELS = 4096
 MESH_SUFFIXES = (".stl", ".ply", ".obj", ".off", ".glb")
 _MAGIC = {".ply": b"ply", ".glb": b"glTF"}
 _OAK_DEVICE_ID = re.compile(r"^[0-9A-Fa-f]{8,40}$")
@@ -73,7 +77,9 @@ class DevicePolicy:
         query = urllib.parse.parse_qs(parts.query, keep_blank_values=True)
         self._check_timeouts(url, query)
         scheme = parts.scheme.lower()
-        if scheme == "sim" or self._listed(url):
+        if scheme == "sim":
+            return _check_simulated(kind, url, query)
+        if self._listed(url):
             return
         if scheme == "oak":
             netloc = parts.netloc
@@ -156,6 +162,24 @@ class DevicePolicy:
                     raise Refused(f"object {name!r}: not a {suffix[1:].upper()} file (it does "
                                   f"not start with {magic.decode()!r})")
         return str(path)
+
+
+def _check_simulated(kind: str, url: str, query: dict[str, list[str]]) -> None:
+    """`Refused` for what a simulated device URL may not ask of this machine: an object file
+    (named by the request's ``object``, which `DevicePolicy.resolve_object` checks) or a camera
+    image over `MAX_SIM_PIXELS` a side (the scan's process holds several arrays of its size)."""
+    if kind == "camera" and "object" in query:
+        raise Refused("the simulated camera's object goes in the request's `object` field "
+                      f"(checked against the operator's object folder), not in its URL {url!r}")
+    for name in ("width", "height"):
+        for raw in query.get(name, []):
+            try:
+                value = float(raw)
+            except ValueError:
+                continue  # not a number: the simulated camera names it
+            if not value <= MAX_SIM_PIXELS:
+                raise Refused(f"{name}={raw[:20]} in a simulated camera's URL is over the "
+                              f"daemon's maximum of {MAX_SIM_PIXELS} pixels")
 
 
 def _is_address(text: str) -> bool:

@@ -3,18 +3,23 @@
 `capture.live.engine` saves the reconstruction (every patch's network and boundary state) in the
 scan folder; loading it costs more than a re-mesh, so the last few loaded engines are kept, and
 a λ slider moved by an operator re-meshes in milliseconds. Each refine writes
-``mesh-lam{λ}-depth{d}.ply`` in the scan folder (as `capture.live.engine.remesh` does).
+``mesh-lam{λ}-depth{d}.ply`` in the scan folder (as `capture.live.engine.remesh` does); the
+folder keeps the `KEEP_REFINED` newest.
 """
 
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import os
 import threading
 from pathlib import Path
 
 from .errors import Conflict, InvalidRequest
+
+#: Refined meshes a scan folder keeps (the newest; the scan's own ``mesh.ply`` is kept too).
+KEEP_REFINED = 8
 
 
 class RefineFailed(InvalidRequest):
@@ -43,7 +48,7 @@ class MeshRefiner:
                depth: int | None) -> RefineResult:
         """Re-mesh and write the mesh; `Conflict` when the scan has no saved reconstruction,
         `RefineFailed` when the new parameters give no mesh."""
-        from capture.live.engine import EngineError, IncrementalEngine
+        from capture.live.engine import DamagedState, EngineError, IncrementalEngine
         from reconstruct.errors import ReconstructionError
         from reconstruct.io import mesh_data
 
@@ -57,6 +62,9 @@ class MeshRefiner:
             if engine is None:
                 try:
                     engine = IncrementalEngine.load(folder)
+                except DamagedState as exc:
+                    raise Conflict(f"scan {scan_id}'s saved reconstruction is damaged or of "
+                                   "another version: re-process the scan") from exc
                 except EngineError as exc:
                     raise Conflict(f"scan {scan_id} has no saved reconstruction to refine") \
                         from exc
@@ -75,9 +83,20 @@ class MeshRefiner:
             partial = folder / f".{name}.part"
             partial.write_bytes(mesh_data(engine.mesh, "ply"))
             os.replace(partial, folder / name)  # a download never sees half a file
+            _drop_old_refines(folder, name)
         return RefineResult(float(figures["lam"]), int(figures["depth"]), name, figures)
 
     def forget(self, scan_id: str) -> None:
         with self._lock:
             self._engines.pop(scan_id, None)
             self._locks.pop(scan_id, None)
+
+
+def _drop_old_refines(folder: Path, current: str) -> None:
+    """Keep the `KEEP_REFINED` newest refined meshes in ``folder`` (``current`` among them):
+    a slider moved for an hour, or a client asking every λ, does not fill the disk."""
+    refined = [path for path in folder.glob("mesh-lam*-depth*.ply") if path.name != current]
+    refined.sort(key=lambda path: path.stat().st_mtime_ns, reverse=True)
+    for path in refined[KEEP_REFINED - 1:]:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()

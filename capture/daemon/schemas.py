@@ -7,6 +7,7 @@ camera can load — so that a bad request fails at once with one line, never lat
 
 from __future__ import annotations
 
+import os
 import re
 import urllib.parse
 from typing import Any, Literal
@@ -17,6 +18,7 @@ from capture.plan import ScanPlan
 from capture.station import is_simulated, station_urls
 from drivers.registry import backend_class
 
+from .auth import is_loopback
 from .policy import DevicePolicy
 
 #: scan ids the daemon makes: 16 lowercase hex digits (also what a path may contain)
@@ -45,8 +47,9 @@ class RefineRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    lam: float | None = Field(default=None, ge=0, le=1e6, allow_inf_nan=False)
-    depth: int | None = Field(default=None, ge=1, le=16)
+    # strict: a JSON true or "2" is no λ or depth (lax pydantic took true for λ = 1)
+    lam: float | None = Field(default=None, ge=0, le=1e6, allow_inf_nan=False, strict=True)
+    depth: int | None = Field(default=None, ge=1, le=16, strict=True)
 
 
 MeshFormat = Literal["ply", "obj", "stl", "glb"]
@@ -73,10 +76,14 @@ def check_scan_request(request: ScanRequest, policy: DevicePolicy) -> tuple[Scan
 
 
 def device_keys(camera_url: str | None, turntable_url: str | None) -> list[str]:
-    """What a scan holds while it runs: each device's URL without options (scheme, host, path).
+    """What a scan holds while it runs: each device as its driver opens it, without options.
 
-    A simulated device is one per simulated station, so its key names the station; a simulated
-    URL without a station (or no URL at all) gets a fresh station of its own and holds nothing.
+    A camera is its URL's scheme, host and path. A GRBL turntable is the port it opens (a
+    ``grbl://`` URL's ``port=`` option wins over its path), ``serial:`` and the device's real
+    path, or a pyserial URL's scheme, host and port with every loopback name as ``localhost``:
+    two URLs that reach one device hold one key. A simulated device is one per simulated
+    station, so its key names the station; a simulated URL without a station (or no URL at
+    all) gets a fresh station of its own and holds nothing.
     """
     keys = []
     for kind, url in (("camera", camera_url), ("turntable", turntable_url)):
@@ -88,9 +95,29 @@ def device_keys(camera_url: str | None, turntable_url: str | None) -> list[str]:
             if not station:
                 continue
             keys.append(f"sim://{kind}?station={station[-1]}")
+        elif kind == "turntable" and parts.scheme.lower() == "grbl":
+            port = urllib.parse.parse_qs(parts.query).get("port")
+            keys.append(_port_key(port[-1] if port else parts.netloc + parts.path))
+        elif kind == "turntable":
+            keys.append(_port_key(url))
         else:
             keys.append(urllib.parse.urlunsplit(parts._replace(query="", fragment="")))
     return keys
+
+
+def _port_key(port: str) -> str:
+    """The key of a serial port a GRBL turntable opens: a device path (its real path), or a
+    pyserial URL (``socket://host:port``, loopback names as ``localhost``)."""
+    if "://" not in port:
+        return f"serial:{os.path.realpath(port) if port.startswith('/') else port.upper()}"
+    parts = urllib.parse.urlsplit(port)
+    host = (parts.hostname or "").lower()
+    host = "localhost" if is_loopback(host) else host
+    try:
+        number = parts.port
+    except ValueError:
+        number = None
+    return f"{parts.scheme.lower()}://{host}:{number}{parts.path}"
 
 
 def is_scan_id(text: str) -> bool:

@@ -34,7 +34,8 @@ import numpy as np
 import trimesh
 
 from reconstruct.atlas import AtlasReconstructor
-from reconstruct.io import mesh_data, write_bytes_atomic
+from reconstruct.errors import ReconstructionError
+from reconstruct.io import mesh_data, one_line, write_bytes_atomic
 from reconstruct.pipeline import SurfaceReconstructor
 
 from ..executors import make_executor
@@ -53,6 +54,11 @@ _STOP = object()
 
 class EngineError(RuntimeError):
     """The engine failed or was used out of order (the message names the cause)."""
+
+
+class DamagedState(EngineError):
+    """A scan's saved reconstruction is there but cannot be loaded (a torn file, another
+    version's fields)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -345,6 +351,15 @@ class IncrementalEngine:
             points = np.load(source / "fitted_points.npy")
         except (OSError, ValueError) as exc:
             raise EngineError(f"{directory}: no saved reconstruction ({exc})") from exc
+        try:
+            return cls._from_saved(meta, points, source)
+        except (OSError, ValueError, KeyError, TypeError, AttributeError,
+                ReconstructionError) as exc:  # a torn file, another version's fields
+            raise DamagedState(f"{directory}: its saved reconstruction is damaged or of another "
+                              f"version ({one_line(exc)}); re-process the scan") from exc
+
+    @classmethod
+    def _from_saved(cls, meta: dict, points: np.ndarray, source: Path) -> IncrementalEngine:
         engine = cls(ReconstructionParams(**meta["params"]), background=False)
         for i, name in enumerate(meta["patches"]):
             model = SurfaceReconstructor.load(source / f"patch-{i}.npz")

@@ -112,3 +112,19 @@ def test_sigkill_mid_scan_then_restart_resume_finishes_it(tmp_path, daemons):
     # an exit by SIGTERM as clean)
     assert second.stop(signal.SIGTERM) in (0, -signal.SIGTERM)
     assert "Application shutdown complete" in second.output()
+
+
+@pytest.mark.parametrize("delay", [0.3, 0.8])
+def test_a_daemon_stopped_during_its_first_device_discovery_exits_cleanly(tmp_path, delay):
+    # the interpreter aborted (SIGABRT, 134) when it exited with the discovery thread inside
+    # depthai's: the daemon's stop waits for it
+    script = (
+        "import sys, time\n"
+        "from fastapi.testclient import TestClient\n"
+        "from capture.daemon.app import create_app\n"
+        "with TestClient(create_app(sys.argv[1])) as client:\n"
+        "    assert client.get('/healthz').status_code == 200\n"
+        "    time.sleep(float(sys.argv[2]))\n")
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path / "state"), str(delay)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]

@@ -58,6 +58,8 @@ ScanId = Annotated[str, PathParam(pattern=SCAN_ID_PATTERN, description="16 hex d
 MAX_COUNT = 2**53
 _STATE_CHANGING = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 DISCOVERY_MAX_AGE_S = 10.0
+#: Seconds a stopping daemon waits for its first device discovery to end (about a second).
+DISCOVERY_WAIT_S = 10.0
 
 
 def prepare_state_dir(state_dir: Path) -> JobStore:
@@ -95,8 +97,9 @@ def create_app(state_dir: str | Path, *, token: str = "", require_token: bool = 
         store = prepare_state_dir(state_dir)
         if getattr(runner_factory, "func", runner_factory) is default_runner_factory:
             threading.Thread(target=warm_up, name="forkserver-warm-up", daemon=True).start()
-        threading.Thread(target=_import_backends, args=(app.state.discovery,),
-                         name="backend-imports", daemon=True).start()
+        imports = threading.Thread(target=_import_backends, args=(app.state.discovery,),
+                                   name="backend-imports", daemon=True)
+        imports.start()
         app.state.interrupted_at_start = store.recover()
         if app.state.interrupted_at_start:
             log.warning("scans interrupted by the last stop (resume or re-process them): %s",
@@ -110,6 +113,9 @@ def create_app(state_dir: str | Path, *, token: str = "", require_token: bool = 
         finally:
             app.state.jobs.shutdown()
             store.close()
+            # an interpreter that exits while the thread is inside an SDK's discovery (depthai)
+            # aborts (SIGABRT: a daemon stopped within a second of its start exited 134)
+            imports.join(timeout=DISCOVERY_WAIT_S)
 
     app = FastAPI(title="ScanStation daemon", version="1", lifespan=lifespan, docs_url=None,
                   redoc_url=None, description=__doc__)

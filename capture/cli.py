@@ -54,6 +54,7 @@ def _setup_output(quiet: bool, verbose: bool) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from capture.reprocess import ReprocessError
     from capture.runner import CaptureError
     from drivers.errors import DeviceError
     from reconstruct.errors import ReconstructionError
@@ -66,7 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("scanstation: interrupted", file=sys.stderr)
         return 130
-    except (ReconstructionError, DeviceError, CaptureError, *EXPECTED_ERRORS) as exc:
+    except (ReconstructionError, DeviceError, CaptureError, ReprocessError,
+            *EXPECTED_ERRORS) as exc:
         if args.verbose:
             raise
         print(f"scanstation: error: {exc}", file=sys.stderr)

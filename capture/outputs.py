@@ -27,6 +27,10 @@ RECORDED_BYTES_PER_PIXEL = 8 / 3
 EXTRA_BYTES = 64 << 20
 
 
+#: What a scan writes in its folder besides its recording's segments.
+NAMES = ("mesh.ply", "cloud.ply", "scan.json", "engine")
+
+
 class OutputError(OSError):
     """The output folder cannot take the scan (the message names the folder and the cause)."""
 
@@ -37,6 +41,10 @@ class ScanOutputs:
     def __init__(self, directory):
         self.directory = Path(directory)
         self.files: dict[str, str] = {}
+
+    def held(self) -> list[str]:
+        """The names of a scan's files (`NAMES`) the folder already holds."""
+        return [name for name in NAMES if (self.directory / name).exists()]
 
     def check_writable(self) -> None:
         """Create the folder and write a probe file; `OutputError` names what failed."""

@@ -29,6 +29,7 @@ from mcap.exceptions import McapError
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
+from zstandard import ZstdError
 
 from .calibration import Calibration
 from .documents import Document, StartDocument, StopDocument, ViewDocument
@@ -226,11 +227,12 @@ def _read_segment(path: Path):
                     continue
                 elif isinstance(record, Footer):
                     footer = True
-    except (McapError, ValueError, KeyError, EOFError, struct.error) as exc:
-        # A crash leaves a torn last chunk (or no footer): keep everything before it.
+    except (McapError, ValueError, KeyError, EOFError, struct.error, ZstdError) as exc:
+        # A crash leaves a torn last chunk (or no footer), a bad disk a damaged one (its zstd
+        # data does not decompress): keep everything before it.
         footer = False
-        log.info("%s: stopped reading at a torn record (%s): recovered what came before",
-                 path, type(exc).__name__)
+        log.info("%s: stopped reading at a torn or damaged record (%s): recovered what came "
+                 "before", path, type(exc).__name__)
     except OSError as exc:
         raise RecordingError(f"cannot read recording {path}: {exc.strerror or exc}") from exc
     return meta, documents, frames, footer

@@ -252,8 +252,10 @@ def _replay(segments, overrides: dict, src: Path, out: Path, named) -> dict:
     src.mkdir()
     for name, data in segments:
         (src / name).write_bytes(data)
+    # a lone file by its own name (a folder's segments are found by theirs)
+    source = src / segments[0][0] if len(segments) == 1 else src
     try:
-        runner = replay_runner(src, out, workers=1, **overrides)
+        runner = replay_runner(source, out, workers=1, **overrides)
         state = runner.start().wait()
     except Exception as exc:
         raise ReprocessError(named(_one_line(exc))) from None

@@ -159,6 +159,9 @@ class ScanRunner(RunLifecycle):
         elif self.record and self.out_dir.is_dir() and segment_paths(self.out_dir):
             raise CaptureError(f"{self.out_dir} already holds a scan recording: resume it "
                                "(--resume) or choose another output folder")
+        elif self.out_dir.is_dir() and (held := ScanOutputs(self.out_dir).held()):
+            raise CaptureError(f"{self.out_dir} already holds {', '.join(held)}, which a new "
+                               "scan would replace: choose another output folder")
         self.plan = (self._plan or ScanPlan()).validate()
         self.outputs = ScanOutputs(self.out_dir)
         self.outputs.check_writable()
@@ -191,7 +194,7 @@ class ScanRunner(RunLifecycle):
 
     def _fail_early(self, exc: Exception) -> None:
         self.error, self.reason = exc, str(exc)
-        log.error("scan cannot start: %s", exc)
+        log.debug("scan cannot start: %s", exc)  # (raised: the caller says it, once)
         self._emit(ErrorDocument, error=type(exc).__name__, message=str(exc))
         self._emit(StopDocument, state="failed", reason=str(exc), views_done=0,
                    views_total=self._plan.n_views if self._plan else 0, files={})

@@ -66,6 +66,8 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
         raise InvalidInputError(f"{path}: expected rows of x, y, z, got shape {points.shape}")
     if len(points) == 0:
         raise InvalidInputError(f"{path}: holds no points")
+    if points.dtype.kind not in "iuf":  # an .npy of strings, objects, complex numbers
+        raise InvalidInputError(f"{path}: its values are {points.dtype}, not real numbers")
     return np.ascontiguousarray(points[:, :3], dtype=np.float64)
 
 
@@ -83,7 +85,27 @@ def _read_ply(path: Path) -> np.ndarray:
         vertices = np.asarray(loaded.vertices)
     if len(vertices) == 0:
         raise InvalidInputError(f"{path}: PLY holds no vertices")
+    declared = _ply_vertex_count(path)
+    if declared is not None and declared != len(vertices):  # trimesh's ASCII reader takes
+        raise InvalidInputError(f"{path}: its header says {declared} vertices, it holds "  # the
+                                f"{len(vertices)} (a truncated or damaged PLY file)")  # rows
     return vertices
+
+
+def _ply_vertex_count(path: Path) -> int | None:
+    """The vertex count a PLY header declares (``element vertex N``), or None if it names
+    none in its first 64 kB."""
+    with open(path, "rb") as handle:
+        header = handle.read(1 << 16).split(b"end_header", 1)[0]
+    for line in header.decode("ascii", errors="replace").splitlines():
+        words = line.split()
+        if words[:2] == ["element", "vertex"] and len(words) == 3:
+            try:
+                return int(words[2])
+            except ValueError:
+                raise InvalidInputError(f"{path}: malformed PLY (element vertex "
+                                        f"{words[2][:20]!r})") from None
+    return None
 
 
 #: A PCD header's TYPE letters as numpy's kinds.
@@ -121,6 +143,9 @@ def _read_pcd(path: Path) -> np.ndarray:
                 if line.strip()]
         if not rows:
             return np.zeros((0, 3))  # (said to hold no points)
+        if len(rows) != n:
+            raise InvalidInputError(f"{path}: its header says {n} points, it holds {len(rows)} "
+                                    f"rows (a truncated or damaged PCD file)")
         return _loaded_rows(path, rows, None, [int(first[fields.index(a)]) for a in "xyz"])
     if kind != "binary":
         raise InvalidInputError(f"{path}: PCD data {kind!r} is not read: save it as binary or "
@@ -208,8 +233,9 @@ def _is_header(row: str) -> bool:
     return False
 
 
-def check_mesh_path(path: str | os.PathLike) -> Path:
-    """Fail before long work when ``path`` cannot take a mesh: bad extension, missing folder."""
+def check_mesh_path(path: str | os.PathLike, inputs=()) -> Path:
+    """Fail before long work when ``path`` cannot take a mesh: bad extension, and as
+    `check_output_path`."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in MESH_FORMATS:
@@ -217,11 +243,29 @@ def check_mesh_path(path: str | os.PathLike) -> Path:
             f"{path}: unsupported mesh format {suffix or '(none)'!r} "
             f"(use {', '.join(MESH_FORMATS)})"
         )
+    return check_output_path(path, inputs)
+
+
+def check_output_path(path: str | os.PathLike, inputs=()) -> Path:
+    """Fail before long work when no file can be written at ``path``: a folder there, a
+    missing folder, one where a probe file cannot be written (``os.access`` lets root
+    through), or one of the ``inputs`` (paths read) that it would replace."""
+    path = Path(path)
+    if path.is_dir():
+        raise InvalidInputError(f"{path}: is a folder, not a file")
     directory = path.parent if str(path.parent) else Path(".")
     if not directory.is_dir():
         raise InvalidInputError(f"{path}: folder {directory} does not exist")
-    if not os.access(directory, os.W_OK):
-        raise InvalidInputError(f"{path}: folder {directory} is not writable")
+    for given in inputs:
+        if Path(given).exists() and Path(given).resolve() == path.resolve():
+            raise InvalidInputError(f"{path}: is also the input, which it would replace")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=f".{path.name}.", dir=directory)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise InvalidInputError(f"{path}: folder {directory} is not writable "
+                                f"({exc.strerror or exc})") from exc
     return path
 
 

@@ -60,6 +60,12 @@ class PtyTransport:
         os.set_blocking(self._master, False)
         self._slave_name = os.ttyname(self._slave)
         if self.link:
+            if os.path.lexists(self.link) and not os.path.islink(self.link):  # a user's file
+                os.close(self._master)
+                os.close(self._slave)
+                self._master = self._slave = None
+                raise FileExistsError(f"{self.link} exists and is not a symlink: the simulated "
+                                      "port's link would replace it (name a free path)")
             tmp = f"{self.link}.{os.getpid()}.tmp"
             os.symlink(self._slave_name, tmp)
             os.replace(tmp, self.link)

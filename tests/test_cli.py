@@ -143,6 +143,26 @@ def test_unwritable_output_fails_before_work(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
 
 
+def test_every_output_is_checked_before_the_fit(tmp_path, capsys, monkeypatch):
+    from reconstruct.pipeline import SurfaceReconstructor
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("fitted before its outputs were checked")
+
+    monkeypatch.setattr(SurfaceReconstructor, "fit", no_fit)
+    cloud = _plane(tmp_path / "plane.xyz")
+    before = cloud.read_bytes()
+    (tmp_path / "folder.ply").mkdir()
+    for extra, said in [(["-o", str(tmp_path / "folder.ply")], "is a folder, not a file"),
+                        (["-o", str(tmp_path / "m.ply"), "--save",
+                          str(tmp_path / "nowhere" / "state.npz")], "does not exist"),
+                        (["-o", str(tmp_path / "m.ply"), "--save", str(cloud)],
+                         "is also the input")]:
+        assert main(["reconstruct", str(cloud), *extra]) == 1
+        assert said in capsys.readouterr().err
+    assert cloud.read_bytes() == before
+
+
 def test_devices_lists_backends(capsys):
     assert main(["devices"]) == 0
     out = capsys.readouterr().out

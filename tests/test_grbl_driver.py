@@ -68,6 +68,19 @@ def test_connect_unlocks_an_alarm(tmp_path):
             assert table.angle == 5
 
 
+def test_a_simulated_port_link_never_replaces_a_file(tmp_path):
+    mine = tmp_path / "notes.txt"
+    mine.write_text("mine")
+    with pytest.raises(FileExistsError, match="not a symlink"):
+        PtyTransport(GrblFirmware(), link=str(mine)).open()
+    assert mine.read_text() == "mine"
+    stale = tmp_path / "tty"
+    stale.symlink_to(tmp_path / "gone")  # a link a killed simulator left: taken over
+    with PtyTransport(GrblFirmware(), link=str(stale)) as transport:
+        assert os.path.realpath(stale) == os.ttyname(transport._slave)
+    assert not os.path.lexists(stale)
+
+
 def test_no_banner_raises_device_not_found_naming_the_port():
     master, slave = os.openpty()  # a terminal where nothing answers
     name = os.ttyname(slave)

@@ -7,6 +7,7 @@ import trimesh
 from reconstruct.errors import DegenerateCloudError, InvalidInputError, ReconstructionWarning
 from reconstruct.io import (
     check_mesh_path,
+    check_output_path,
     cloud_data,
     read_points,
     rounding_to_single,
@@ -88,6 +89,35 @@ def test_pcd_files_as_pcl_writes_them(tmp_path):
                           ("flat.pcd", "fields are u v, without x, y and z"),
                           ("empty.pcd", "holds no points")]:
         with pytest.raises(InvalidInputError, match=message):
+            read_points(tmp_path / name)
+
+
+def test_a_text_file_shorter_or_longer_than_its_header_says_is_refused(tmp_path):
+    rows = "".join(f"{i} {i % 7} {i % 5}\n" for i in range(40))
+    for name, header, message in [
+            ("short.ply", "element vertex 60", "header says 60 vertices, it holds 40"),
+            ("huge.ply", "element vertex 1000000000000", "header says 1000000000000 vertices"),
+            ("negative.ply", "element vertex -5", "header says -5 vertices")]:
+        (tmp_path / name).write_text(f"ply\nformat ascii 1.0\n{header}\nproperty float x\n"
+                                     f"property float y\nproperty float z\nend_header\n{rows}")
+        with pytest.raises(InvalidInputError, match=message):
+            read_points(tmp_path / name)
+    whole = tmp_path / "whole.ply"
+    whole.write_text("ply\nformat ascii 1.0\nelement vertex 40\nproperty float x\n"
+                     f"property float y\nproperty float z\nend_header\n{rows}")
+    assert read_points(whole).shape == (40, 3)
+    short = tmp_path / "short.pcd"
+    short.write_bytes(pcd_header("x y z", "4 4 4", "F F F", "1 1 1", 60, "ascii")
+                      + rows.encode())
+    with pytest.raises(InvalidInputError, match="header says 60 points, it holds 40 rows"):
+        read_points(short)
+
+
+def test_an_npy_of_other_values_than_real_numbers_is_refused(tmp_path):
+    for name, values in [("text.npy", np.full((20, 3), "a")),
+                         ("complex.npy", np.ones((20, 3)) * (1 + 2j))]:
+        np.save(tmp_path / name, values)
+        with pytest.raises(InvalidInputError, match="not real numbers"):
             read_points(tmp_path / name)
 
 
@@ -215,6 +245,26 @@ def test_mesh_path_checked_before_work(tmp_path):
         check_mesh_path(tmp_path / "m.xyz")
     with pytest.raises(InvalidInputError, match="does not exist"):
         check_mesh_path(tmp_path / "missing" / "m.ply")
+    (tmp_path / "folder.ply").mkdir()
+    with pytest.raises(InvalidInputError, match="is a folder, not a file"):
+        check_mesh_path(tmp_path / "folder.ply")
+    cloud = tmp_path / "cloud.ply"
+    cloud.write_text("ply")
+    with pytest.raises(InvalidInputError, match="is also the input, which it would replace"):
+        check_mesh_path(tmp_path / "." / "cloud.ply", inputs=[cloud])
+    assert check_mesh_path(tmp_path / "mesh.ply", inputs=[cloud]) == tmp_path / "mesh.ply"
+    assert not list(tmp_path.glob(".mesh.ply.*"))  # the probe is gone
+
+
+def test_an_output_folder_is_written_to_not_asked(tmp_path, monkeypatch):
+    import tempfile
+
+    def refused(*args, **kwargs):  # as a read-only mount answers root, whom os.access passes
+        raise PermissionError(13, "Read-only file system")
+
+    monkeypatch.setattr(tempfile, "mkstemp", refused)
+    with pytest.raises(InvalidInputError, match="is not writable .Read-only file system"):
+        check_output_path(tmp_path / "state.npz")
 
 
 def test_check_points_drops_nonfinite_with_warning():

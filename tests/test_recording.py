@@ -82,6 +82,34 @@ def test_every_truncation_keeps_each_view_completed_before_it(tmp_path):
     assert ends == sorted(ends) and ends[-1] == 4 and ends[0] == 0 and len(ends) > 60
 
 
+def test_a_damaged_byte_keeps_each_view_completed_before_it(tmp_path):
+    record(tmp_path, n_views=4)
+    path = tmp_path / "scan" / "recording.mcap"
+    data = path.read_bytes()
+    full = read_recording(path)
+    damaged = tmp_path / "damaged" / "recording.mcap"
+    damaged.parent.mkdir()
+    kept = []
+    for at in sorted(random.Random(1).sample(range(len(data) // 4, len(data) - 64), 24)):
+        flipped = bytearray(data)
+        flipped[at] ^= 0xFF  # a bad sector: in a chunk's zstd data, its CRC, or a header
+        damaged.write_bytes(bytes(flipped))
+        got = read_recording(damaged)
+        torn = read_recording(_cut(damaged, data[:at]))  # what a cut there keeps
+        assert len(got.views) >= len(torn.views), at
+        for v, w in zip(got.views, full.views, strict=False):
+            np.testing.assert_array_equal(v.frames[0], w.frames[0])
+        kept.append(len(got.views))
+    assert min(kept) < 4 and 3 in kept  # (a flip off the views' data loses none)
+
+
+def _cut(path, data):
+    cut = path.with_name("cut") / "recording.mcap"
+    cut.parent.mkdir(exist_ok=True)
+    cut.write_bytes(data)
+    return cut
+
+
 def test_unreadable_inputs_name_the_cause(tmp_path):
     with pytest.raises(RecordingError, match="no such recording"):
         read_recording(tmp_path / "missing.mcap")

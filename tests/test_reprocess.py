@@ -104,6 +104,28 @@ def test_a_missing_segment_fails_that_recording_only(tmp_path):
     assert outcomes[0].status == "failed" and "No such file" in outcomes[0].cause
 
 
+def test_a_lone_recording_file_is_reprocessed_whatever_its_name(scan, tmp_path):
+    import shutil
+
+    lone = tmp_path / "lone" / "scan-0042.mcap"
+    lone.parent.mkdir()
+    shutil.copy(scan / "recording.mcap", lone)
+    (job,) = find_recordings([lone])
+    (outcome,) = Reprocessor(tmp_path / "out").run([job])
+    assert outcome.status == "ok", outcome.cause
+    assert (tmp_path / "out" / job.name / "mesh.ply").read_bytes() == \
+        (scan / "mesh.ply").read_bytes()
+
+
+def test_a_missing_path_is_one_expected_line(tmp_path, capsys):
+    from capture.cli import main
+
+    assert main(["reprocess", str(tmp_path / "nope"), "-o", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("scanstation: error: ") and "unexpected" not in err
+    assert "no such file or folder" in err and len(err.splitlines()) == 1
+
+
 def test_default_path_runs_on_local_processes_without_importing_dask(scan, tmp_path):
     corrupt = tmp_path / "corrupt.mcap"
     corrupt.write_bytes(b"\x89MCAP0\r\n" + os.urandom(200))

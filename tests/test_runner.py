@@ -377,6 +377,21 @@ def test_a_second_scan_never_lands_in_the_folder_of_the_first(tmp_path):
     assert [v.index for v in read_recording(tmp_path / "scan").views] == [0, 1]
 
 
+def test_a_new_scan_never_replaces_a_folders_scan_files(tmp_path):
+    folder = tmp_path / "scan"
+    folder.mkdir()
+    (folder / "mesh.ply").write_text("mine")
+    (folder / "notes.txt").write_text("mine too")
+    runner = runner_for(tmp_path, plan(2))
+    with pytest.raises(CaptureError, match=r"already holds mesh.ply, which a new scan would "
+                                           r"replace: choose another output folder"):
+        runner.start()
+    assert (folder / "mesh.ply").read_text() == "mine"
+    (folder / "mesh.ply").unlink()  # other files are the user's business
+    assert runner_for(tmp_path, plan(2)).start().wait(timeout=60) == "done"
+    assert (folder / "notes.txt").read_text() == "mine too"
+
+
 def test_segments_of_two_scans_are_not_read_as_one(tmp_path):
     import shutil
 

@@ -25,7 +25,7 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-    from reconstruct.io import write_mesh
+    from reconstruct.io import check_mesh_path, write_mesh
     from reconstruct.metrics import surface_report
     from sim.shapes import SHAPES, make_shape
 
@@ -33,7 +33,10 @@ def run(args) -> int:
 
     if args.shape not in SHAPES:
         raise ValueError(f"unknown shape {args.shape!r} (choose from {', '.join(SHAPES)})")
+    if not 0 <= args.noise < float("inf"):  # (NaN too)
+        raise ValueError(f"--noise must be a finite number >= 0, got {args.noise}")
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
+    check_mesh_path(args.output)  # before the fit, not after
     shape = make_shape(args.shape, args.points, noise=args.noise, random_state=args.seed)
     log.info("%s: %d points, noise σ=%.3g", shape.name, len(shape.points), shape.noise_sigma)
     model = reconstructor_from_args(args).fit(shape.points)

@@ -145,9 +145,11 @@ def points_limit(text: str):
 
 
 def run(args) -> int:
-    from reconstruct.io import check_mesh_path, read_points, write_mesh
+    from reconstruct.io import check_mesh_path, check_output_path, read_points, write_mesh
 
-    check_mesh_path(args.output)  # fail before the long work, not after
+    check_mesh_path(args.output, inputs=[args.input])  # fail before the long work, not after
+    if args.save:
+        check_output_path(args.save, inputs=[args.input, args.output])
     points = read_points(args.input)
     log.info("read %d points from %s", len(points), args.input)
     closed = {"auto": None, "yes": True, "no": False}[args.closed]

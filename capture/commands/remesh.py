@@ -32,7 +32,7 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     from reconstruct.io import check_mesh_path, write_mesh
 
-    check_mesh_path(args.output)
+    check_mesh_path(args.output, inputs=[args.state])
     scan = scan_folder(Path(args.state))
     mesh = _remesh_scan(scan, args) if scan is not None else _remesh_state(args)
     write_mesh(mesh, args.output)

@@ -30,8 +30,8 @@ def run(args) -> int:
     from sim.grbl_firmware import GrblFirmware
     from sim.serial_ports import PtyTransport
 
-    if args.max_rate <= 0 or args.accel <= 0:
-        raise ValueError("--max-rate and --accel must be > 0")
+    if not (0 < args.max_rate < float("inf") and 0 < args.accel < float("inf")):  # (NaN too)
+        raise ValueError("--max-rate and --accel must be finite numbers > 0")
     firmware = GrblFirmware(instant=args.instant, max_rate=args.max_rate,
                             acceleration=args.accel)
     stop = threading.Event()

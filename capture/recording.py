@@ -231,8 +231,9 @@ def _read_segment(path: Path):
         # A crash leaves a torn last chunk (or no footer), a bad disk a damaged one (its zstd
         # data does not decompress): keep everything before it.
         footer = False
-        log.info("%s: stopped reading at a torn or damaged record (%s): recovered what came "
-                 "before", path, type(exc).__name__)
+        log.log(logging.INFO if meta is not None else logging.DEBUG,  # (none: its error says)
+                "%s: stopped reading at a torn or damaged record (%s): recovered what came "
+                "before", path, type(exc).__name__)
     except OSError as exc:
         raise RecordingError(f"cannot read recording {path}: {exc.strerror or exc}") from exc
     return meta, documents, frames, footer

@@ -96,7 +96,7 @@ from .mesh_edges import topology, turn_faces
 from .residual_detail import DETAIL_WIDTH, ResidualDetail
 from .sdf_grid import SparseSDF
 from .sheet_graph import SheetGraph
-from .validation import ATLAS_POINTS, check_points, random_subset
+from .validation import ATLAS_POINTS, check_points, check_voxel, random_subset
 
 log = logging.getLogger(__name__)
 
@@ -271,6 +271,7 @@ class AtlasReconstructor(BaseEstimator):
         try:
             try:
                 points = check_points(points)
+                check_voxel(self.voxel)
                 if self.up is not None:
                     check_up(self.up)
                 volume = volume_warning(points)

@@ -56,7 +56,13 @@ from .mlp import AdaptiveMLP
 from .outline import border_inset, border_spacing, extend_outline
 from .pipeline_state import STATE_FORMAT, reconstruction_from_state, reconstruction_state
 from .spline import BoundarySpline, SplineInput, spline_input
-from .validation import ATLAS_POINTS, check_max_points, check_points, random_subset
+from .validation import (
+    ATLAS_POINTS,
+    check_max_points,
+    check_points,
+    check_voxel,
+    random_subset,
+)
 
 log = logging.getLogger(__name__)
 
@@ -299,9 +305,7 @@ class SurfaceReconstructor(BaseEstimator):
             raise InvalidInputError(f"atlas must be one of {ATLAS_MODES}, got {self.atlas!r}")
         if not (self.closed is None or isinstance(self.closed, bool)):
             raise InvalidInputError(f"closed must be None, True or False, got {self.closed!r}")
-        if isinstance(self.voxel, (bool, np.bool_)) or not (
-                isinstance(self.voxel, (int, float, np.number)) and 0 < self.voxel < np.inf):
-            raise InvalidInputError(f"voxel must be a number > 0, got {self.voxel!r}")
+        check_voxel(self.voxel)
         check_max_points(self.max_points)
         check_max_points(self.atlas_points, "atlas_points")
         # an atlas_points asked above what a fit takes: not taken without a word (the

@@ -52,6 +52,10 @@ TWIN_MIN_POINTS = 100
 TWIN_PROBES = 2000
 
 
+#: The largest coordinate a cloud may hold: beyond it a squared distance overflows float64.
+MAX_COORDINATE = 1e150
+
+
 def check_points(points, min_points: int = MIN_POINTS) -> np.ndarray:
     """Validate a cloud and return it as (n, 3) float64, repaired where a sensible result exists.
 
@@ -81,6 +85,11 @@ def check_points(points, min_points: int = MIN_POINTS) -> np.ndarray:
         )
         array = array[finite]
 
+    largest = float(np.abs(array).max())
+    if largest > MAX_COORDINATE:  # squared distances overflow to inf: every point an outlier
+        raise InvalidInputError(f"coordinates as large as {largest:.3g} (beyond "
+                                f"±{MAX_COORDINATE:g}): distances between the points overflow; "
+                                "rescale the cloud")
     kept, why = merge_duplicates(array)
     if len(kept) < len(array):
         warnings.warn(f"merged {len(array) - len(kept)} {why}", ReconstructionWarning,
@@ -180,6 +189,20 @@ MIN_MAX_POINTS = 100
 #: 0.274 on 40,000, 0.254 on 50,000 (38 s, 1.6 GB), 0.403 on all (its join's grid finer than
 #: the noise); the mug 0.223 on 20,000, 0.260 on 40,000, 0.240 on 50,000.
 ATLAS_POINTS = 20_000
+
+
+#: The finest join grid an atlas lays, in median point spacings: at 0.1 it holds 125 times
+#: the nodes of the default 0.5 (a 20k cloud's 0.6-1.2 million: about 100 million, gigabytes);
+#: a finer one overflowed its box after the charts' fit (1e-300: "negative dimensions").
+MIN_VOXEL = 0.1
+
+
+def check_voxel(voxel) -> None:
+    """Refuse a join ``voxel`` (`InvalidInputError`) that is not a number from `MIN_VOXEL`."""
+    if isinstance(voxel, (bool, np.bool_)) or not (
+            isinstance(voxel, (int, float, np.number)) and MIN_VOXEL <= voxel < np.inf):
+        raise InvalidInputError(f"voxel must be a number >= {MIN_VOXEL} (median point "
+                                f"spacings; finer grids hold too many nodes), got {voxel!r}")
 
 
 def check_max_points(limit, name: str = "max_points") -> None:

@@ -238,10 +238,14 @@ def test_bad_atlas_join_options_are_refused(tmp_path, capsys, option, value):
 
 @pytest.mark.parametrize(("params", "message"), [
     ({"closed": "yes"}, "closed must be"), ({"closed": 0}, "closed must be"),
-    ({"voxel": 0.0}, "voxel must be"), ({"voxel": True}, "voxel must be")])
+    ({"voxel": 0.0}, "voxel must be"), ({"voxel": True}, "voxel must be"),
+    ({"voxel": 1e-300}, "voxel must be a number >= 0.1")])
 def test_bad_atlas_join_params_are_refused(params, message):
     with pytest.raises(InvalidInputError, match=message):
         SurfaceReconstructor(**params).fit(sphere_cloud())
+    if "voxel" in params:  # the atlas itself, before its charts' fit
+        with pytest.raises(InvalidInputError, match=message):
+            AtlasReconstructor(**params).fit(sphere_cloud())
 
 
 def test_the_layered_charts_are_found_from_the_fields_residuals():

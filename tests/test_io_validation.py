@@ -267,6 +267,12 @@ def test_an_output_folder_is_written_to_not_asked(tmp_path, monkeypatch):
         check_output_path(tmp_path / "state.npz")
 
 
+def test_coordinates_whose_distances_overflow_are_refused():
+    with pytest.raises(InvalidInputError, match="distances between the points overflow"):
+        check_points(CLOUD * 1e298)
+    assert check_points(CLOUD * 1e140).shape == CLOUD.shape  # large, and still measurable
+
+
 def test_check_points_drops_nonfinite_with_warning():
     cloud = CLOUD.copy()
     cloud[3, 1] = np.nan

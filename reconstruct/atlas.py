@@ -401,6 +401,13 @@ class AtlasReconstructor(BaseEstimator):
                     f"from one side only (a scan's unseen inside), and closed=True "
                     f"(--closed yes) joins them as thin shells",
                     ReconstructionWarning, stacklevel=3)
+            if sides.open_pieces_ is not None:
+                warnings.warn(
+                    f"joined closed, but charts holding {sides.open_pieces_:.0%} of the samples, "
+                    f"apart from the rest, are seen from both sides: an open surface there is "
+                    f"joined as a thin closed shell; closed=False (--closed no) joins the whole "
+                    f"cloud open, or reconstruct that part on its own",
+                    ReconstructionWarning, stacklevel=3)
             self.shells_, self.thin_ = sides.shells_, sides.thin_
             self.signs_ = self.signs_ * sides.turns_
             self._probe = sides.probe_

@@ -291,7 +291,9 @@ class ChartSides:
     `join.ExteriorProbe`, ``votes_`` (c,) in [−1, 1],
     ``turns_`` (c,) ±1 turning each chart's normals to face out, ``shells_`` (c,) bool charts
     joined as a thin closed shell (two-sided, or thin), ``thin_`` (c,) bool thin parts whose
-    shell's far face keeps the gap in front of it open.
+    shell's far face keeps the gap in front of it open, ``open_pieces_`` the share of the
+    samples in shells of a closed cloud's pieces apart from the rest with no chart facing out
+    (an open sheet beside a closed object: `_apart_two_sided`; None when none).
     """
 
     def __init__(self, band: float = 3.0, closed: bool | None = None):
@@ -335,7 +337,7 @@ class ChartSides:
                 break
         if not closed:  # the votes at the band say why it is open
             seal, probe, votes, two_sided, outward = tried[0]
-        self.layered_ = self.mixed_ = None
+        self.layered_ = self.mixed_ = self.open_pieces_ = None
         if not closed and self.closed is None:
             facing = sizes[outward].sum() / total
             both = ~outward & (two_sided >= VOTE_LIMIT)
@@ -364,4 +366,27 @@ class ChartSides:
             if two_layer is not None:  # both faces charted at once
                 self.thin_ |= np.asarray(two_layer, bool)
             self.shells_ |= self.thin_
+            self.open_pieces_ = _apart_two_sided(outward, self.shells_ & ~self.thin_, sizes,
+                                                 chart_points, len(points))
         return self
+
+
+def _apart_two_sided(outward, shells, sizes, chart_points, n_points: int) -> float | None:
+    """The share of the samples (``sizes`` (c,) per chart) in the ``shells`` (c,) bool of pieces
+    of charts (charts that share points, ``chart_points`` c index arrays into ``n_points``)
+    where no chart is ``outward`` (c,) bool: seen from both sides all over, apart from the
+    volume the rest closes. A thin part's shells (an ear) share points with charts that face
+    out; an open sheet beside a closed object (a sphere and a sheet in one cloud: the sheet
+    joined as a slab 10 noise widths thick) shares none. None when there is none."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    chart = np.repeat(np.arange(len(chart_points)), [len(m) for m in chart_points])
+    point = np.concatenate([np.asarray(m, np.int64) for m in chart_points])
+    incidence = coo_matrix((np.ones(len(point)), (chart, point)),
+                           shape=(len(chart_points), n_points)).tocsr()
+    _, piece = connected_components(incidence @ incidence.T, directed=False)
+    facing = np.bincount(piece, outward.astype(float)) > 0
+    apart = shells & ~facing[piece]
+    share = float(sizes[apart].sum() / max(sizes.sum(), 1.0))
+    return share if share > 0 else None

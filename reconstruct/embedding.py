@@ -38,6 +38,7 @@ from .neighbors import (
 )
 from .outliers import statistical_outlier_mask
 from .threads import single_threaded
+from .validation import check_spread
 
 log = logging.getLogger(__name__)
 
@@ -192,9 +193,7 @@ class SurfaceEmbedding(BaseEstimator):
         if points.ndim != 2 or points.shape[1] != 3:
             raise InvalidInputError(f"expected points of shape (n, 3), got {points.shape}")
         self._check_count(len(points), self._resolve_method(len(points)), "given")
-        singular = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
-        if singular[0] == 0 or singular[1] / singular[0] < 1e-6:
-            raise DegenerateCloudError("the points are collinear: a surface needs a 2D spread")
+        check_spread(points)
         return points
 
     def _resolve_method(self, n_points: int) -> str:

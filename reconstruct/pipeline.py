@@ -36,6 +36,7 @@ from .errors import (
     WarmStartRefused,
 )
 from .faithfulness import (
+    APART_KURTOSIS,
     BRIDGE_LIMIT,
     LAYERED_KURTOSIS,
     MISSED_LIMIT,
@@ -204,11 +205,14 @@ class SurfaceReconstructor(BaseEstimator):
     ``neighbour_preservation_`` of the embedding (`reconstruct.faithfulness`; a
     `ReconstructionWarning` when the share is over 5 %), ``missed_region_`` (share, centre (3,))
     the largest patch of unexplained points when there are 1-5 % (`faithfulness.missed_region`;
-    a warning when over 1 %: a region the mesh misses).
+    a warning when over 1 %: a region the mesh misses), ``residual_kurtosis_`` of the points'
+    signed distances to the one chart's mesh (about 3; under 2.5 a warning, two layers; under
+    `faithfulness.APART_KURTOSIS`, layers apart, an atlas).
     ``timings_`` (seconds per stage of the last fit / remesh: embedding, search, final fits,
     export, boundary, mesh).
     When an atlas was fitted: ``atlas_`` (`AtlasReconstructor`), ``atlas_reason_`` (why), and
-    ``mesh_``, ``unexplained_``, ``neighbour_preservation_`` are the atlas's; the one-chart
+    ``mesh_``, ``unexplained_``, ``neighbour_preservation_``, ``missed_region_`` (of all the
+    points given) are the atlas's; the one-chart
     attributes (``embedding_``, ``surface_map_``, ...) are not set.
     """
 
@@ -284,16 +288,18 @@ class SurfaceReconstructor(BaseEstimator):
         for name in ("atlas_", "atlas_reason_"):
             self.__dict__.pop(name, None)
         self.timings_ = {}
-        if self.atlas == "always" and warm_start is None:
-            return self._fit_atlas(points, "asked for")
-        started = time.perf_counter()
+        self._given = points  # (an atlas's mesh is checked against all of them)
         spare = None  # chart workers warmed on the spare cores, in case one chart cannot serve
         try:
+            if self.atlas == "always" and warm_start is None:
+                return self._fit_atlas(points, "asked for")
+            started = time.perf_counter()
             if warm_start is None and self.atlas == "auto" and len(points) >= SPECULATE_FROM:
                 spare = self._new_atlas()
                 spare.warm()
             return self._fit_from_scratch(points, warm_start, spare, started, embedded)
         finally:
+            self.__dict__.pop("_given", None)
             if spare is not None:
                 spare.cancel()  # nothing, when the atlas took it up
 
@@ -468,9 +474,11 @@ class SurfaceReconstructor(BaseEstimator):
         self.missed_region_ = (missed_region(self.mesh_, assessed, explained)
                                if MISSED_LIMIT < self.unexplained_ <= UNEXPLAINED_LIMIT
                                else (0.0, np.full(3, np.nan)))
+        self.residual_kurtosis_ = residual_kurtosis(self.mesh_, self.points_)
         if warm_start is None and self.atlas == "auto":
             reason = self._atlas_reason(points, self.unexplained_, self.hidden_layers_,
-                                        self.n_neighbors_, missed=self.missed_region_)
+                                        self.n_neighbors_, missed=self.missed_region_,
+                                        kurtosis=self.residual_kurtosis_)
             if reason is not None:
                 return self._fit_atlas(*reason, atlas=spare)
         self._check_faithful()
@@ -487,7 +495,8 @@ class SurfaceReconstructor(BaseEstimator):
         return self
 
     def _atlas_reason(self, points, unexplained: float, layers: tuple[int, ...], k: int,
-                      limit: float = UNEXPLAINED_LIMIT, missed=None) -> tuple | None:
+                      limit: float = UNEXPLAINED_LIMIT, missed=None,
+                      kurtosis: float | None = None) -> tuple | None:
         """(points, reason, hidden layers, K) for `_fit_atlas` when ``mesh_``, one chart, is
         the wrong model of the input ``points`` (n, 3); None when it is not.
 
@@ -508,6 +517,10 @@ class SurfaceReconstructor(BaseEstimator):
             return points, f"one chart's mesh misses a region of the data ({where})", layers, k
         if bridged_share(self.mesh_, self.points_) > BRIDGE_LIMIT:
             return self.points_, "one chart's mesh spans holes in the data", layers, k
+        if kurtosis is not None and kurtosis < APART_KURTOSIS:  # a thin part's two faces
+            return points, (f"its points lie in two layers apart, one each side of one "
+                            f"chart's mesh (residual kurtosis {kurtosis:.2f}: the faces of a "
+                            f"thin part, or two sheets)"), None, None
         return None
 
     def _new_atlas(self):
@@ -543,6 +556,13 @@ class SurfaceReconstructor(BaseEstimator):
         if self.unexplained_ > UNEXPLAINED_LIMIT:
             problems.insert(0, f"the mesh leaves {100 * self.unexplained_:.0f} % of the "
                                "points farther than their noise allows")
+        else:  # under the limit, in one patch: a region left out (of all the points given: the
+            # embedding's outlier filter drops a part sampled much more sparsely than the rest)
+            self.missed_region_ = missed_region(self.mesh_, self.__dict__.get("_given", points))
+            if self.missed_region_[0] > MISSED_LIMIT:
+                problems.insert(0, f"the mesh misses a region of the data, "
+                                   f"{_in_words(self.missed_region_)} (a small piece apart "
+                                   f"from the rest, or a part sampled more sparsely, left out)")
         if problems:
             warnings.warn(f"atlas of {len(atlas.charts_)} charts: {problems[0]}"
                           + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""),
@@ -595,7 +615,9 @@ class SurfaceReconstructor(BaseEstimator):
         # point's nearest neighbours in 3D tell them apart: they lie on its side of the mesh in
         # both once the noise is wider than the spacing (correlation of a residual with its 6
         # neighbours' mean: a plane with uniform noise 0.81, two layers 0.87-0.97).
-        kurtosis = residual_kurtosis(self.mesh_, self.points_)
+        kurtosis = self.__dict__.get("residual_kurtosis_")
+        if kurtosis is None:  # (a warm start's fine-tuned fit)
+            kurtosis = residual_kurtosis(self.mesh_, self.points_)
         if kurtosis < LAYERED_KURTOSIS:
             warnings.warn(
                 f"the points lie in two layers about the mesh, or their noise is not Gaussian "

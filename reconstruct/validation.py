@@ -101,11 +101,21 @@ def check_points(points, min_points: int = MIN_POINTS) -> np.ndarray:
             f"{len(array)} usable points; reconstruction needs at least {min_points}"
         )
 
-    centered = array - array.mean(axis=0)
-    singular = np.linalg.svd(centered, compute_uv=False)
+    check_spread(array)
+    return array
+
+
+def check_spread(points: np.ndarray) -> None:
+    """`DegenerateCloudError` when the bulk of ``points`` (n, 3) is collinear: the points
+    within twice the interquartile range of the middle along each axis (a far stray point, a
+    depth camera's invalid value 1e9 away, outweighed a whole sphere's spread)."""
+    low, high = np.percentile(points, [25, 75], axis=0)
+    bulk = points[np.all(np.abs(points - (low + high) / 2) <= 2 * (high - low), axis=1)]
+    if len(bulk) < 3:
+        bulk = points
+    singular = np.linalg.svd(bulk - bulk.mean(axis=0), compute_uv=False)
     if singular[0] == 0 or singular[1] / singular[0] < 1e-6:
         raise DegenerateCloudError("the points are collinear: a surface needs a 2D spread")
-    return array
 
 
 def robust_diagonal(points: np.ndarray) -> float:

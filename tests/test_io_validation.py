@@ -267,6 +267,16 @@ def test_an_output_folder_is_written_to_not_asked(tmp_path, monkeypatch):
         check_output_path(tmp_path / "state.npz")
 
 
+def test_a_far_stray_point_does_not_make_a_cloud_collinear():
+    from reconstruct.errors import DegenerateCloudError
+
+    far = np.vstack([CLOUD, [[1e9, 0.0, 0.0]]])  # a depth camera's invalid value
+    assert check_points(far).shape == far.shape
+    line = np.column_stack([np.linspace(0, 1, 50)] * 3)
+    with pytest.raises(DegenerateCloudError, match="collinear"):
+        check_points(np.vstack([line, [[0.0, 1e9, 0.0]]]))
+
+
 def test_coordinates_whose_distances_overflow_are_refused():
     with pytest.raises(InvalidInputError, match="distances between the points overflow"):
         check_points(CLOUD * 1e298)

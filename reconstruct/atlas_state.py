@@ -103,8 +103,9 @@ def atlas_from_state(cls, meta: dict, arrays: dict):
     if not (len(atlas.signs_) == len(atlas.chart_points_) == len(atlas._chart_ids) == n_charts
             == len(arrays["shells"])
             and labels.shape == (len(atlas.points_),) and atlas.points_.ndim == 2
+            and atlas.points_.shape[1:] == (3,) and np.isfinite(atlas.points_).all()
             and (len(flat) == 0 or 0 <= flat.min() and flat.max() < len(atlas.points_))):
-        raise ValueError("its charts, signs and points do not agree")
+        raise ValueError("its charts, signs and points do not agree, or a point is not finite")
     atlas.decomposition_ = ChartDecomposition(chart_size=atlas.chart_size,
                                               overlap=atlas.overlap)
     atlas.decomposition_.labels_ = labels

@@ -41,6 +41,11 @@ def reconstruction_from_state(cls, meta: dict, arrays: dict, prefix: str = ""):
     self = cls(**meta["params"])
     self.embedding_ = np.asarray(arrays[f"{prefix}embedding"], float)
     self.points_ = np.asarray(arrays[f"{prefix}points"], float)
+    m = len(self.embedding_)
+    if (self.embedding_.shape != (m, 2) or self.points_.shape != (m, 3)
+            or not (np.isfinite(self.embedding_).all() and np.isfinite(self.points_).all())):
+        raise ValueError(f"its embedding {self.embedding_.shape} and points "
+                         f"{self.points_.shape} do not agree, or a value is not finite")
     self.embedding_method_ = meta["embedding_method"]
     self.n_neighbors_ = int(meta["n_neighbors"])
     self.hidden_layers_ = tuple(meta["hidden_layers"])

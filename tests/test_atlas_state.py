@@ -174,11 +174,30 @@ def damaged_copies(path, tmp_path):
                 target.writestr(item, flat.getvalue())
             else:
                 target.writestr(item, source.read(item.filename))
+    nan_point = tmp_path / "nan_point.npz"  # well formed, a point NaN (a hand edit)
+    _rewritten(path, nan_point, "points.npy", lambda a: np.where(np.arange(len(a))[:, None] == 3,
+                                                                 np.nan, a))
+    wide = tmp_path / "wide_embedding.npz"  # well formed, a chart's embedding 5 wide
+    _rewritten(path, wide, "chart0_embedding.npy", lambda a: np.tile(a, (1, 3))[:, :5])
     return {"truncated": truncated, "flipped": flipped, "missing": missing,
-            "flat_probe": flat_probe}
+            "flat_probe": flat_probe, "nan_point": nan_point, "wide_embedding": wide}
 
 
-@pytest.mark.parametrize("damage", ["truncated", "flipped", "missing", "flat_probe"])
+def _rewritten(path, target, name, change):
+    """A copy of the archive ``path`` at ``target`` with its array ``name`` changed."""
+    with zipfile.ZipFile(path) as source, zipfile.ZipFile(target, "w") as copy:
+        for item in source.infolist():
+            data = source.read(item.filename)
+            if item.filename == name:
+                array = change(np.load(io.BytesIO(data)))
+                data = io.BytesIO()
+                np.save(data, array)
+                data = data.getvalue()
+            copy.writestr(item, data)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "flipped", "missing", "flat_probe", "nan_point",
+                                    "wide_embedding"])
 def test_a_damaged_atlas_file_is_one_line_error(saved, tmp_path, capsys, damage):
     _, path = saved
     bad = damaged_copies(path, tmp_path)[damage]

@@ -396,8 +396,14 @@ class GrblTurntable(Turntable):
         timeout = self.homing_timeout
         self._homing_deadline = time.monotonic() + timeout
         self._homed.clear()
+        with self.link.cond:
+            alarms = self.link.alarm_seq
         try:
             self.link.command("$H", timeout)
+            with self.link.cond:  # real GRBL answers a failed cycle's $H with ok after its
+                failed = self.link.alarm_seq > alarms  # ALARM:6-9 (then resets)
+            if failed:
+                raise FirmwareAlarm(self.link.last_alarm or 9, "$H")
         except FirmwareAlarm as exc:
             self._referenced = False
             raise alarm_error(exc.code, "$H") from None
@@ -435,7 +441,8 @@ class GrblTurntable(Turntable):
             start = self._work_angle(self._prepare_motion())
             distance = abs(degrees - start) if mode == "G90" else abs(degrees)
             rate = min(self.feed, self.max_rate)
-            line = f"{mode} G1 {self.axis}{format_number(degrees)} F{format_number(rate)}"
+            # G21 on the line: a reset or $H runs the startup blocks ($N), which may set G20
+            line = f"G21 {mode} G1 {self.axis}{format_number(degrees)} F{format_number(rate)}"
             duration = move_duration(distance, rate, self.acceleration)
             timeout = min(duration * 1.25 + self.margin, _MAX_MOVE_TIMEOUT)
             log.debug("%s: %s (%.2f s expected)", self.port, line, duration)
@@ -473,6 +480,11 @@ class GrblTurntable(Turntable):
         if link.needs_resync:
             link.resync()
         status = self.status()
+        if status.state == "Run":  # lines `send_gcode` queued (their ok came when planned):
+            done = link.send_line("G4 P0")  # the move starts where they end
+            link.wait_motion(done, _MAX_MOVE_TIMEOUT, "G4 P0 (queued motion)",
+                             self.poll_interval, self.link_timeout)
+            status = self.status()
         if status.state == "Alarm" and not allow_alarm:
             if link.alarm is not None:
                 raise FirmwareAlarm(link.alarm, alarm_meaning(link.alarm) + "; call unlock()")

@@ -43,7 +43,9 @@ VERSION, BUILD = "1.1h", "20190830"
 BANNER = f"Grbl {VERSION} ['$' for help]"
 LOCK_MESSAGE = "[MSG:'$H'|'$X' to unlock]"
 HELP = "[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]"
-RX_CAPACITY = RX_BUFFER_SIZE - 1  # a ring buffer keeps one slot free
+#: Bytes the RX buffer holds: all 128 (GRBL's ring is RX_BUFFER_SIZE + 1 long, one slot kept
+#: free; `Bf` reports 128 when empty)
+RX_CAPACITY = RX_BUFFER_SIZE
 GRBL_DEFAULTS: dict[int, float] = {
     0: 10, 1: 25, 2: 0, 3: 0, 4: 0, 5: 0, 6: 0, 10: 1, 11: 0.010, 12: 0.002, 13: 0, 20: 0, 21: 0,
     22: 0, 23: 0, 24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 30: 1000, 31: 0, 32: 0,
@@ -391,6 +393,8 @@ class GrblFirmware:
             if self._status_requested:
                 self._status_requested = False
                 self._write_status(now, "Alarm")
+            if code != 6:  # the failed cycle's $H is answered, then the reset (gnea/grbl#126:
+                self._emit("ok", now)  # ALARM:9, ok, banner); a reset (6) cuts it short
             self._rx.clear()
             self._reset_protocol(now)
             self._boot_messages(now)

@@ -411,3 +411,22 @@ def test_a_board_reporting_inches_is_refused_with_the_fix_named():
                 table.reconnect()
     finally:
         reset_stations()
+
+
+def test_a_move_is_in_degrees_whatever_units_the_firmware_was_left_in(tmp_path):
+    # a reset or $H runs GRBL's startup blocks ($N), which may set G20 (inches: 25.4 x)
+    with rig(tmp_path, instant=True) as (table, firmware, _):
+        table.send_gcode(["G20"])
+        table.move_by(10)
+        assert table.angle == pytest.approx(10)
+
+
+def test_a_move_after_queued_lines_starts_where_they_end(tmp_path):
+    # send_gcode returns when its lines are planned (GRBL's ok): the table still runs them,
+    # and the next move's own timeout (its 1 degree) ran out while they did
+    with rig(tmp_path, "&margin=0.2", instant=False, max_rate=7200,
+             acceleration=3600) as (table, firmware, _):
+        table.send_gcode(["G91 G1 X90 F7200"] * 2)
+        assert firmware.state == "Run"
+        table.move_by(1)
+        assert table.angle == pytest.approx(181)

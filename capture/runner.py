@@ -135,6 +135,9 @@ class ScanRunner(RunLifecycle):
         except Exception as exc:
             self._fail_early(exc)
             raise CaptureError(str(exc)) from exc
+        except BaseException as exc:  # Ctrl-C while the devices open: closed, then it goes on
+            self._fail_early(RuntimeError(f"interrupted while starting ({type(exc).__name__})"))
+            raise  # (its devices' threads left open hung the process's exit for good)
         self._thread = threading.Thread(target=self._main, name="scan-runner", daemon=True)
         self._thread.start()
         return self
@@ -149,6 +152,7 @@ class ScanRunner(RunLifecycle):
                 self.station = recorded_station(self.replay)
         elif self.resume_from is not None:
             recording = read_recording(self.resume_from)
+            _check_same_views(self._plan, recording.plan, self.resume_from)
             self._plan = self._plan or recording.plan
             calibration = calibration or recording.calibration
             if self.station is None and camera_url is None and turntable_url is None:
@@ -409,3 +413,19 @@ class ScanRunner(RunLifecycle):
                     closer()
                 except Exception as exc:
                     log.warning("closing after the scan failed: %s", exc)
+
+
+def _check_same_views(plan: ScanPlan | None, recorded: ScanPlan, where) -> None:
+    """`CaptureError` unless a resumed scan's ``plan`` (None: the recorded one) has the
+    ``recorded`` plan's views: its views are taken by index (a resume with 8 views for 4
+    recorded captured 90 deg twice and 45 deg never, and ended done)."""
+    if plan is None:
+        return
+    same = (len(plan.angles) == len(recorded.angles)
+            and all(abs(a - b) <= 1e-9 for a, b in zip(plan.angles, recorded.angles, strict=True))
+            and plan.frames_per_view == recorded.frames_per_view)
+    if not same:
+        raise CaptureError(f"{where}: a resumed scan keeps its recorded views ({recorded.n_views} "
+                           f"views, {recorded.frames_per_view} frames each), and this plan's "
+                           f"differ ({plan.n_views} views, {plan.frames_per_view} frames each): "
+                           "resume without a plan, or start a new scan")

@@ -100,7 +100,8 @@ class GrblLink:
             self.close()
             raise
         self._stop_reader.clear()
-        self._reader = threading.Thread(target=self._read_loop, name=f"grbl-reader {self.port}")
+        self._reader = threading.Thread(target=self._read_loop, name=f"grbl-reader {self.port}",
+                                        daemon=True)  # (a port left open must not hang an exit)
         self._reader.start()
 
     def _drain(self) -> None:

@@ -377,6 +377,20 @@ def test_a_second_scan_never_lands_in_the_folder_of_the_first(tmp_path):
     assert [v.index for v in read_recording(tmp_path / "scan").views] == [0, 1]
 
 
+def test_ctrl_c_while_the_devices_open_closes_them_and_ends_the_scan(tmp_path, monkeypatch):
+    from capture.outputs import ScanOutputs
+
+    def ctrl_c(*args, **kwargs):  # the step after the station opened
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ScanOutputs, "check_space", ctrl_c)
+    runner = runner_for(tmp_path, plan(2))
+    with pytest.raises(KeyboardInterrupt):
+        runner.start()
+    assert runner.wait(timeout=5) == "failed" and "interrupted while starting" in runner.reason
+    assert not runner.station.turntable.is_open  # (its reader thread held the exit for good)
+
+
 def test_a_new_scan_never_replaces_a_folders_scan_files(tmp_path):
     folder = tmp_path / "scan"
     folder.mkdir()
@@ -418,6 +432,24 @@ def test_a_resumed_scan_keeps_its_scan_id_across_segments(tmp_path):
     recording = read_recording(tmp_path / "scan")
     assert len(recording.segments) == 2 and recording.scan_id == runner.scan_id
     assert [v.index for v in recording.views] == [0, 1, 2, 3]
+
+
+def test_a_resume_with_other_views_is_refused_before_anything_moves(tmp_path):
+    runner = runner_for(tmp_path, plan(4))
+    runner.subscribe(lambda d: d.kind == "progress" and d.views_done == 2 and runner.cancel())
+    assert runner.start().wait(timeout=60) == "interrupted"
+    name = station_name()
+    for other in (plan(8), plan(4, frames_per_view=3)):
+        resumed = ScanRunner.resume_recording(
+            tmp_path / "scan", plan=other, camera_url=f"{CAMERA}&station={name}",
+            turntable_url=f"sim://turntable?instant=1&station={name}")
+        with pytest.raises(CaptureError, match="a resumed scan keeps its recorded views"):
+            resumed.start()
+    assert [v.index for v in read_recording(tmp_path / "scan").views] == [0, 1]
+    same = ScanRunner.resume_recording(
+        tmp_path / "scan", plan=plan(4), camera_url=f"{CAMERA}&station={name}",
+        turntable_url=f"sim://turntable?instant=1&station={name}")
+    assert same.start().wait(timeout=60) == "done"
 
 
 def test_an_object_outside_the_working_volume_fails_in_one_line_and_keeps_the_views(

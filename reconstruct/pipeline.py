@@ -615,9 +615,7 @@ class SurfaceReconstructor(BaseEstimator):
         # point's nearest neighbours in 3D tell them apart: they lie on its side of the mesh in
         # both once the noise is wider than the spacing (correlation of a residual with its 6
         # neighbours' mean: a plane with uniform noise 0.81, two layers 0.87-0.97).
-        kurtosis = self.__dict__.get("residual_kurtosis_")
-        if kurtosis is None:  # (a warm start's fine-tuned fit)
-            kurtosis = residual_kurtosis(self.mesh_, self.points_)
+        kurtosis = self.residual_kurtosis_  # (found by `_fit_one_chart`)
         if kurtosis < LAYERED_KURTOSIS:
             warnings.warn(
                 f"the points lie in two layers about the mesh, or their noise is not Gaussian "

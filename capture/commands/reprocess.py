@@ -14,7 +14,7 @@ log = logging.getLogger("capture.cli")
 
 
 def add_parser(subparsers) -> None:
-    from .scan import add_cluster_option
+    from .scan import add_cluster_option, workers_count
 
     parser = subparsers.add_parser(
         "reprocess", help="rebuild mesh, cloud and report of many recordings (resumable; local "
@@ -32,7 +32,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--seed", type=int, default=None, help="random seed (same seed, same "
                         "mesh)")
     add_cluster_option(parser)
-    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+    parser.add_argument("--workers", type=workers_count, default=os.cpu_count() or 1,
                         help="local processes without --cluster (default: one per core)")
     parser.add_argument("--force", action="store_true", help="redo up-to-date recordings too")
     parser.set_defaults(run=run)
@@ -46,8 +46,6 @@ def run(args) -> int:
 
     from .scan import engine_overrides
 
-    if args.workers < 1:
-        raise ValueError(f"--workers must be >= 1, got {args.workers}")
     jobs = find_recordings(args.recordings)
     log.info("%d recordings to %s", len(jobs), args.output)
     bar = ProgressBar(len(jobs), enabled=logging.getLogger("capture").level <= logging.INFO)

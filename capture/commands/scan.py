@@ -48,12 +48,12 @@ def add_engine_options(parser) -> None:
     parser.add_argument("--depth", type=int, default=None, help="boundary path depths")
     parser.add_argument("--seed", type=int, default=None, help="random seed (same seed, same "
                         "mesh)")
-    parser.add_argument("--workers", type=_workers, default=2,
+    parser.add_argument("--workers", type=workers_count, default=2,
                         help="processes fitting patches (2; 1: in the scan's own)")
     add_cluster_option(parser)
 
 
-def _workers(text: str) -> int:
+def workers_count(text: str) -> int:
     """A ``--workers`` value: a whole number >= 1 (0 and -1 were taken as 1 without a word)."""
     import argparse
 

@@ -78,9 +78,9 @@ def check_scan_request(request: ScanRequest, policy: DevicePolicy) -> tuple[Scan
 def device_keys(camera_url: str | None, turntable_url: str | None) -> list[str]:
     """What a scan holds while it runs: each device as its driver opens it, without options.
 
-    A camera is its URL's scheme, host and path. A GRBL turntable is the port it opens (a
-    ``grbl://`` URL's ``port=`` option wins over its path), ``serial:`` and the device's real
-    path, or a pyserial URL's scheme, host and port with every loopback name as ``localhost``:
+    A camera is its URL's scheme, host and path. A GRBL turntable is the port its driver opens
+    (``serial:`` and the device's real path, or a pyserial URL's scheme, host and port with every
+    loopback name as ``localhost``):
     two URLs that reach one device hold one key. A simulated device is one per simulated
     station, so its key names the station; a simulated URL without a station (or no URL at
     all) gets a fresh station of its own and holds nothing.
@@ -95,11 +95,8 @@ def device_keys(camera_url: str | None, turntable_url: str | None) -> list[str]:
             if not station:
                 continue
             keys.append(f"sim://{kind}?station={station[-1]}")
-        elif kind == "turntable" and parts.scheme.lower() == "grbl":
-            port = urllib.parse.parse_qs(parts.query).get("port")
-            keys.append(_port_key(port[-1] if port else parts.netloc + parts.path))
-        elif kind == "turntable":
-            keys.append(_port_key(url))
+        elif kind == "turntable":  # the port as its driver reads it from the URL
+            keys.append(_port_key(backend_class(kind, url).from_url(url).port))
         else:
             keys.append(urllib.parse.urlunsplit(parts._replace(query="", fragment="")))
     return keys
